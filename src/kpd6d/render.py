@@ -1,0 +1,178 @@
+"""Headless rendering of object models with pyrender (EGL).
+
+``PYOPENGL_PLATFORM=egl`` is set here (unless the user chose a platform): Mesa's software
+renderer serves on a CPU-only machine, the NVIDIA driver on a GPU machine. Poses are given in
+OpenCV/BOP convention; :mod:`kpd6d.geometry` does the only OpenCV -> OpenGL conversion.
+"""
+
+from __future__ import annotations
+
+import os
+
+os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
+
+from dataclasses import dataclass, field  # noqa: E402
+
+import numpy as np  # noqa: E402
+
+from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K, cv_pose_to_gl_model_view  # noqa: E402
+
+__all__ = ["Light", "Lighting", "RenderResult", "Renderer"]
+
+
+@dataclass
+class Light:
+    """A directional light, ``direction`` in the OpenCV camera frame (towards where it shines)."""
+
+    direction: tuple[float, float, float] = (0.0, 0.0, 1.0)
+    color: tuple[float, float, float] = (1.0, 1.0, 1.0)
+    intensity: float = 3.0
+
+
+@dataclass
+class Lighting:
+    ambient: tuple[float, float, float] = (0.35, 0.35, 0.35)
+    lights: list[Light] = field(default_factory=lambda: [Light()])
+    specular: float = 0.0  # 0: matte (vertex colours as they are); >0 adds a metallic-roughness sheen
+
+    @classmethod
+    def random(cls, rng: np.random.Generator, specular_prob: float = 0.3) -> Lighting:
+        """Random ambient, 1-2 directional lights (direction, colour, intensity), optional specular."""
+        amb = rng.uniform(0.15, 0.6) * rng.uniform(0.85, 1.0, 3)
+        lights = []
+        for _ in range(int(rng.integers(1, 3))):
+            d = rng.normal(size=3)
+            d[2] = abs(d[2]) + 0.3  # mostly from behind the camera, towards the scene
+            lights.append(Light(tuple(d / np.linalg.norm(d)), tuple(rng.uniform(0.8, 1.0, 3)), float(rng.uniform(1.5, 5.0))))
+        spec = float(rng.uniform(0.1, 0.5)) if rng.random() < specular_prob else 0.0
+        return cls(tuple(amb), lights, spec)
+
+
+@dataclass
+class RenderResult:
+    rgb: np.ndarray  # (H, W, 3) uint8; background black
+    depth: np.ndarray  # (H, W) float32 mm, 0 where nothing
+    masks_visib: list[np.ndarray]  # per instance (H, W) bool: visible pixels
+    masks_full: list[np.ndarray]  # per instance (H, W) bool: silhouette ignoring occluders (if asked)
+
+
+def _look_rotation(direction) -> np.ndarray:
+    """4x4 GL pose whose -z axis points along ``direction`` (given in OpenCV camera frame)."""
+    d = np.asarray(direction, dtype=np.float64)
+    d = d / np.linalg.norm(d)
+    d_gl = d * np.array([1.0, -1.0, -1.0])  # CV -> GL axes (direction only)
+    z = -d_gl
+    a = np.array([0.0, 1.0, 0.0]) if abs(z[1]) < 0.9 else np.array([1.0, 0.0, 0.0])
+    x = np.cross(a, z)
+    x /= np.linalg.norm(x)
+    y = np.cross(z, x)
+    T = np.eye(4)
+    T[:3, :3] = np.stack([x, y, z], axis=1)
+    return T
+
+
+class Renderer:
+    """Renders meshes at OpenCV poses with intrinsics ``K`` into (width, height) images.
+
+    One OpenGL context per instance (and per process: create it after forking). Meshes are
+    converted to pyrender once and cached by identity.
+    """
+
+    def __init__(self, width: int = LINEMOD_IMAGE_SIZE[0], height: int = LINEMOD_IMAGE_SIZE[1],
+                 K: np.ndarray = LINEMOD_K, znear: float = 10.0, zfar: float = 20000.0) -> None:
+        import pyrender
+
+        self.width, self.height = int(width), int(height)
+        self.K = np.asarray(K, dtype=np.float64)
+        self.znear, self.zfar = znear, zfar
+        self._pyrender = pyrender
+        try:
+            self._renderer = pyrender.OffscreenRenderer(self.width, self.height)
+        except Exception as exc:  # pragma: no cover - depends on the machine's GL stack
+            raise RuntimeError(
+                f"cannot create a headless OpenGL context (PYOPENGL_PLATFORM={os.environ.get('PYOPENGL_PLATFORM')}): "
+                f"{exc}. On Debian/Ubuntu install libegl1 and libgl1-mesa-dri (Mesa's EGL) or an NVIDIA driver."
+            ) from exc
+        self._cache: dict[tuple[int, float], object] = {}
+
+    def close(self) -> None:
+        if getattr(self, "_renderer", None) is not None:
+            self._renderer.delete()
+            self._renderer = None
+
+    def __del__(self) -> None:  # pragma: no cover
+        try:
+            self.close()
+        except Exception:
+            pass
+
+    def set_intrinsics(self, K: np.ndarray) -> None:
+        self.K = np.asarray(K, dtype=np.float64)
+
+    def _camera(self, K):
+        # pixel centres at integer coordinates (OpenCV) vs at +0.5 (GL): shift the principal point
+        return self._pyrender.IntrinsicsCamera(
+            fx=K[0, 0], fy=K[1, 1], cx=K[0, 2] + 0.5, cy=K[1, 2] + 0.5, znear=self.znear, zfar=self.zfar
+        )
+
+    def _pymesh(self, mesh, specular: float):
+        key = (id(mesh), round(specular, 2))
+        pm = self._cache.get(key)
+        if pm is None:
+            material = None
+            if specular > 0:
+                material = self._pyrender.MetallicRoughnessMaterial(
+                    metallicFactor=0.2 * specular, roughnessFactor=1.0 - 0.6 * specular,
+                    baseColorFactor=[1.0, 1.0, 1.0, 1.0],
+                )
+            pm = self._pyrender.Mesh.from_trimesh(mesh, material=material, smooth=False)
+            if len(self._cache) > 256:
+                self._cache.clear()
+            self._cache[key] = (pm, mesh)  # keep mesh alive so id() stays unique
+            return pm
+        return pm[0]
+
+    def render(self, instances, *, lighting: Lighting | None = None, K: np.ndarray | None = None,
+               full_masks: bool = False, depth_only: bool = False) -> RenderResult:
+        """Render ``instances``: a list of ``(mesh_or_model, R, t)`` (R, t: model -> OpenCV camera, mm).
+
+        ``mesh_or_model`` is an :class:`~kpd6d.objects.ObjectModel` or a trimesh mesh (distractors).
+        Returns RGB, depth (mm) and per-instance visible masks (one pyrender segmentation pass);
+        ``full_masks=True`` also renders each instance alone for its unoccluded silhouette.
+        """
+        pyrender = self._pyrender
+        K = self.K if K is None else np.asarray(K, dtype=np.float64)
+        lighting = lighting or Lighting()
+        scene = pyrender.Scene(ambient_light=np.asarray(lighting.ambient), bg_color=[0.0, 0.0, 0.0, 0.0])
+        scene.add(self._camera(K), pose=np.eye(4))
+        for light in lighting.lights:
+            scene.add(pyrender.DirectionalLight(color=np.asarray(light.color), intensity=light.intensity),
+                      pose=_look_rotation(light.direction))
+        nodes = []
+        for obj, R, t in instances:
+            mesh = getattr(obj, "mesh", obj)
+            node = pyrender.Node(mesh=self._pymesh(mesh, lighting.specular), matrix=cv_pose_to_gl_model_view(R, t))
+            scene.add_node(node)
+            nodes.append(node)
+        flags = pyrender.RenderFlags.DEPTH_ONLY if depth_only else pyrender.RenderFlags.NONE
+        out = self._renderer.render(scene, flags=flags)
+        if depth_only:
+            rgb, depth = np.zeros((self.height, self.width, 3), np.uint8), out
+        else:
+            rgb, depth = out
+        seg_map = {node: (i + 1, 0, 0) for i, node in enumerate(nodes)}
+        masks_visib: list[np.ndarray] = []
+        if nodes:
+            seg, _ = self._renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
+            label = seg[..., 0]
+            masks_visib = [label == (i + 1) for i in range(len(nodes))]
+        masks_full: list[np.ndarray] = []
+        if full_masks:
+            for node in nodes:
+                for other in nodes:
+                    other.mesh.is_visible = other is node
+                d = self._renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
+                masks_full.append(d > 0)
+            for other in nodes:
+                other.mesh.is_visible = True
+        return RenderResult(np.ascontiguousarray(rgb[..., :3]), depth.astype(np.float32), masks_visib, masks_full)

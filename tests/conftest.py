@@ -1,0 +1,44 @@
+"""Shared fixtures. Real data lives in ../shared/data (or $KPD6D_SHARED_DATA); it is never needed by
+the library itself. In CI (CI=true) a missing shared folder is an error, never a silent skip."""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def shared_data_dir() -> Path:
+    env = os.environ.get("KPD6D_SHARED_DATA")
+    return Path(env) if env else ROOT.parent / "shared" / "data"
+
+
+@pytest.fixture(scope="session")
+def shared_data() -> Path:
+    d = shared_data_dir()
+    if not (d / "lmo" / "models" / "models_info.json").is_file():
+        msg = f"shared LM-O data not found at {d} (set KPD6D_SHARED_DATA)"
+        if os.environ.get("CI"):
+            pytest.fail(msg)
+        pytest.skip(msg)
+    return d
+
+
+@pytest.fixture(scope="session")
+def lmo_dir(shared_data: Path) -> Path:
+    return shared_data / "lmo"
+
+
+@pytest.fixture(scope="session")
+def lmo_models(lmo_dir: Path):
+    from kpd6d.objects import load_bop_models
+
+    return load_bop_models(lmo_dir / "models")
+
+
+@pytest.fixture(scope="session")
+def lmo_model_by_id(lmo_models):
+    return {m.obj_id: m for m in lmo_models}

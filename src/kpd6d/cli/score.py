@@ -1,0 +1,63 @@
+"""``kpd6d-score RESULTS.csv DATASET_ROOT [--json PATH]``: BOP19 scores (AR_MSSD, AR_MSPD) of a results file.
+
+Follows the BOP toolkit (see :mod:`kpd6d.evaluation.bop19`); prints a per-object table. VSD is not
+computed (it needs depth images and a depth renderer) and the output says so.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import tempfile
+from pathlib import Path
+
+
+def _write_json_atomic(path: Path, data: dict) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        json.dump(data, f, indent=2)
+    os.replace(tmp, path)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    p = argparse.ArgumentParser(prog="kpd6d-score", description=__doc__.strip().splitlines()[0])
+    p.add_argument("results", type=Path, help="BOP results CSV (scene_id,im_id,obj_id,score,R,t,time)")
+    p.add_argument("root", type=Path, help="BOP dataset root (with test_targets_bop19.json, models_eval/ or models/)")
+    p.add_argument("--json", type=Path, default=None, help="write the scores as JSON here")
+    p.add_argument("--split", default="test", help="split folder under the root (default: test)")
+    p.add_argument("--targets", default="test_targets_bop19.json", help="targets file name in the root")
+    p.add_argument("--visib-gt-min", type=float, default=-1.0,
+                   help="GT instances with visib_fract below this are not counted; negative (default, as the "
+                        "BOP toolkit): the inst_count most visible instances of each target are counted")
+    return p
+
+
+def main(argv: list[str] | None = None) -> int:
+    args = build_parser().parse_args(argv)
+    from kpd6d.evaluation.bop19 import BopScoringError, format_scores_table, score_bop19_file
+    from kpd6d.evaluation.results_io import ResultsFormatError
+
+    try:
+        scores = score_bop19_file(args.results, args.root, split=args.split, targets_filename=args.targets,
+                                  visib_gt_min=args.visib_gt_min)
+    except (BopScoringError, ResultsFormatError) as exc:
+        print(f"kpd6d-score: {exc}", file=sys.stderr)
+        return 2
+    scores["results"] = str(args.results)
+    scores["dataset_root"] = str(args.root)
+    print(format_scores_table(scores))
+    print(f"\nAR_MSSD {scores['ar_mssd']:.4f}  AR_MSPD {scores['ar_mspd']:.4f}  "
+          f"({scores['n_estimates_considered']} of {scores['n_estimates']} estimates considered, "
+          f"{scores['n_targets']} GT instances)")
+    print(f"VSD: {scores['vsd']}")
+    if args.json:
+        _write_json_atomic(args.json, scores)
+        print(f"wrote {args.json}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,187 @@
+"""The end-to-end pose pipeline: detector -> (crop -> KPD heatmaps -> decode) -> top-l -> PnP.
+
+``PosePipeline(detector, kpd, pnp, top_l)(image (H, W, 3) uint8 RGB, K (3, 3))`` returns one dict
+per detected object: ``obj_id``, ``R`` (3, 3), ``t`` (3,) mm, ``score`` (the detection score),
+``keypoints_2d`` (k, 2) image px, ``confidences`` (k,), plus ``box`` (4,) xywh, ``used`` (k,) bool
+(the top-l keypoints given to PnP) and ``ok`` / ``reason`` from PnP (``R``/``t`` are NaN when not
+ok: a failure, never dropped). :meth:`PosePipeline.predict_batch` does the same for a batch of
+images (one detector call, one KPD call over every object of every image, one batched PnP).
+
+The KPD contract (``kpd6d.kpd``) does the crop, heatmap network and decoding inside
+``predict_keypoints(images, boxes, image_index, obj_ids)``; the pipeline keeps the stage times of
+its last call in :attr:`PosePipeline.last_timings` (seconds: ``detect``, ``kpd``, ``pnp``,
+``total``).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Sequence
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = ["PipelineInputError", "PosePipeline", "default_device", "images_to_tensor"]
+
+
+class PipelineInputError(ValueError):
+    """An image, intrinsics or component the pipeline cannot use; the message says which and why."""
+
+
+def default_device() -> torch.device:
+    return torch.device("cuda" if torch.cuda.is_available() else "cpu")
+
+
+def images_to_tensor(images: Sequence[np.ndarray] | np.ndarray, device: Any = "cpu") -> torch.Tensor:
+    """uint8 RGB images (H, W, 3) (a list or a (B, H, W, 3) array, equal sizes) -> float (B, 3, H, W) in [0, 1]."""
+    arr = [np.asarray(im) for im in (images if isinstance(images, (list, tuple)) else list(np.asarray(images)))]
+    for i, im in enumerate(arr):
+        if im.ndim != 3 or im.shape[2] != 3:
+            raise PipelineInputError(f"image {i} must be (H, W, 3) RGB, got shape {im.shape}")
+        if im.dtype != np.uint8:
+            raise PipelineInputError(f"image {i} must be uint8 RGB (0..255), got dtype {im.dtype}")
+        if im.shape != arr[0].shape:
+            raise PipelineInputError(f"images of one batch must have one size: image 0 is {arr[0].shape}, "
+                                     f"image {i} is {im.shape}")
+    x = torch.from_numpy(np.stack(arr)).to(device)
+    return x.permute(0, 3, 1, 2).float().div_(255.0)
+
+
+def _check_K(K, n: int) -> np.ndarray:
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape == (3, 3):
+        K = np.broadcast_to(K, (n, 3, 3))
+    if K.shape != (n, 3, 3) or not np.isfinite(K).all():
+        raise PipelineInputError(f"K must be (3, 3) or ({n}, 3, 3) finite intrinsics, got shape {K.shape}")
+    return np.ascontiguousarray(K)
+
+
+def _top_l_mask(confidences: torch.Tensor, top_l: int | None) -> torch.Tensor:
+    """Boolean mask (N, k) of the ``top_l`` most confident keypoints (all when None or >= k)."""
+    if top_l is None or top_l >= confidences.shape[-1]:
+        return torch.ones_like(confidences, dtype=torch.bool)
+    from kpd6d.kpd.select import top_l as select_top_l
+
+    sel = select_top_l(confidences, int(top_l))
+    if isinstance(sel, tuple):  # (values, indices) style
+        sel = sel[-1]
+    sel = torch.as_tensor(sel, device=confidences.device)
+    if sel.dtype == torch.bool:
+        return sel
+    mask = torch.zeros_like(confidences, dtype=torch.bool)
+    return mask.scatter_(-1, sel.long(), True)
+
+
+class PosePipeline:
+    """Detector + KPD + PnP. ``pnp`` is a solver object or a ``PNP_SOLVERS`` name; ``top_l`` the number
+    of most confident keypoints passed to PnP (None: all)."""
+
+    def __init__(self, detector, kpd, pnp: Any = "epnp_ransac", top_l: int | None = 20,
+                 device: str | torch.device | None = None) -> None:
+        if not hasattr(detector, "predict"):
+            raise PipelineInputError(f"detector must have .predict(images, targets=None), got {type(detector).__name__}")
+        if not hasattr(kpd, "predict_keypoints") or not hasattr(kpd, "keypoints_3d"):
+            raise PipelineInputError(f"kpd must have .predict_keypoints(...) and .keypoints_3d, got {type(kpd).__name__}")
+        if isinstance(pnp, str) or isinstance(pnp, dict):
+            from kpd6d.registry import PNP_SOLVERS, build_from_cfg
+
+            pnp = PNP_SOLVERS.build(pnp) if isinstance(pnp, str) else build_from_cfg(PNP_SOLVERS, pnp)
+        if top_l is not None and int(top_l) < 4:
+            raise PipelineInputError(f"top_l must be >= 4 (PnP needs at least 4 points) or None, got {top_l}")
+        self.detector, self.kpd, self.pnp = detector, kpd, pnp
+        self.top_l = None if top_l is None else int(top_l)
+        self.device = torch.device(device) if device is not None else default_device()
+        for m in (detector, kpd):
+            if isinstance(m, torch.nn.Module):
+                m.to(self.device).eval()
+        self.last_timings: dict[str, float] = {}
+
+    # -- construction ---------------------------------------------------------------------------
+    @classmethod
+    def from_checkpoints(cls, detector: str | os.PathLike, kpd: str | os.PathLike, *, pnp: Any = "epnp_ransac",
+                         top_l: int | None = 20, device: str | torch.device | None = None,
+                         obj_ids: Sequence[int] | None = None, **detector_overrides: Any) -> PosePipeline:
+        """Load a detector checkpoint (or ``"oracle"``) and a KPD checkpoint."""
+        from kpd6d.kpd.module import KPDModule
+
+        device = torch.device(device) if device is not None else default_device()
+        kpd_module = KPDModule.load_checkpoint(kpd)
+        if str(detector) == "oracle":
+            from kpd6d.registry import DETECTORS
+
+            det = DETECTORS.build("oracle", obj_ids=list(obj_ids) if obj_ids else None, **detector_overrides)
+        else:
+            from kpd6d.detection import load_detector
+
+            det = load_detector(detector, obj_ids=obj_ids, map_location=device, **detector_overrides)
+        return cls(det, kpd_module, pnp=pnp, top_l=top_l, device=device)
+
+    # -- inference ------------------------------------------------------------------------------
+    def __call__(self, image: np.ndarray, K, targets: dict | None = None) -> list[dict]:
+        """Poses of the objects in one uint8 RGB image with intrinsics ``K`` (3, 3)."""
+        return self.predict_batch([image], K, None if targets is None else [targets])[0]
+
+    @torch.no_grad()
+    def predict_batch(self, images: Sequence[np.ndarray] | np.ndarray | torch.Tensor, K,
+                      targets: list[dict] | None = None) -> list[list[dict]]:
+        """Poses for a batch of images (uint8 (H, W, 3) arrays, or a float (B, 3, H, W) tensor in [0, 1]).
+
+        ``K`` is (3, 3) for all images or (B, 3, 3); ``targets`` goes to the detector (the oracle's GT
+        boxes). Returns one list of pose dicts per image.
+        """
+        t0 = time.perf_counter()
+        x = images.to(self.device) if isinstance(images, torch.Tensor) else images_to_tensor(images, self.device)
+        B = x.shape[0]
+        Ks = _check_K(K, B)
+        dets = self.detector.predict(x, targets=targets)
+        if len(dets) != B:
+            raise PipelineInputError(f"detector returned {len(dets)} results for {B} images")
+        t1 = time.perf_counter()
+
+        known = {int(o) for o in self.kpd.keypoints_3d}
+        boxes, img_idx, obj_ids, scores = [], [], [], []
+        for b, d in enumerate(dets):
+            for box, oid, s in zip(d.boxes.tolist(), d.obj_ids.tolist(), d.scores.tolist()):
+                if int(oid) in known:  # the KPD cannot localise objects it has no keypoints for
+                    boxes.append(box)
+                    img_idx.append(b)
+                    obj_ids.append(int(oid))
+                    scores.append(float(s))
+        out: list[list[dict]] = [[] for _ in range(B)]
+        if not boxes:
+            self.last_timings = {"detect": t1 - t0, "kpd": 0.0, "pnp": 0.0, "total": time.perf_counter() - t0}
+            return out
+        boxes_t = torch.tensor(boxes, dtype=torch.float32, device=self.device)
+        idx_t = torch.tensor(img_idx, dtype=torch.long, device=self.device)
+        ids_t = torch.tensor(obj_ids, dtype=torch.long, device=self.device)
+        kp2d, conf = self.kpd.predict_keypoints(x, boxes_t, idx_t, ids_t)
+        kp2d = torch.as_tensor(kp2d).float()
+        conf = torch.as_tensor(conf).float()
+        used = _top_l_mask(conf, self.top_l)
+        if self.device.type == "cuda":
+            torch.cuda.synchronize()
+        t2 = time.perf_counter()
+
+        kp2d_np = kp2d.detach().cpu().numpy().astype(np.float64)
+        conf_np = conf.detach().cpu().numpy().astype(np.float64)
+        used_np = used.detach().cpu().numpy()
+        k = kp2d_np.shape[1]
+        pts3d = np.stack([np.asarray(self.kpd.keypoints_3d[o], dtype=np.float64).reshape(-1, 3) for o in obj_ids])
+        if pts3d.shape[1] != k:
+            raise PipelineInputError(f"KPD returned {k} keypoints but keypoints_3d has {pts3d.shape[1]}")
+        # PnP uses the points with confidence > 0: weight the top-l by their confidence, zero the rest
+        weights = np.where(used_np, np.maximum(conf_np, 1e-6), 0.0)
+        est = self.pnp.solve_batch(pts3d, kp2d_np, Ks[np.asarray(img_idx)], weights)
+        t3 = time.perf_counter()
+
+        R, t, ok = np.asarray(est.R), np.asarray(est.t), np.asarray(est.ok)
+        for n, b in enumerate(img_idx):
+            out[b].append({
+                "obj_id": obj_ids[n], "R": R[n], "t": t[n], "score": scores[n],
+                "keypoints_2d": kp2d_np[n], "confidences": conf_np[n], "used": used_np[n],
+                "box": np.asarray(boxes[n]), "ok": bool(ok[n]), "reason": est.reasons[n],
+            })
+        self.last_timings = {"detect": t1 - t0, "kpd": t2 - t1, "pnp": t3 - t2, "total": t3 - t0}
+        return out

@@ -107,12 +107,15 @@ def _make_dataset(root, instances, targets, width=640):
     sdir.mkdir(parents=True)
     gt = {str(im): [{"obj_id": o, "cam_R_m2c": R.reshape(-1).tolist(), "cam_t_m2c": list(t)} for o, R, t, _ in insts]
           for im, insts in instances.items()}
-    gi = {str(im): [{"visib_fract": v} for *_, v in insts] for im, insts in instances.items()}
+    gi = {str(im): [{"visib_fract": v, "bbox_obj": [0, 0, 10, 10], "bbox_visib": [0, 0, 10, 10], "px_count_all": 100,
+                     "px_count_valid": 100, "px_count_visib": int(100 * v)} for *_, v in insts]
+          for im, insts in instances.items()}
     cam = {str(im): {"cam_K": LINEMOD_K.reshape(-1).tolist(), "depth_scale": 1.0} for im in instances}
     (sdir / "scene_gt.json").write_text(json.dumps(gt))
     (sdir / "scene_gt_info.json").write_text(json.dumps(gi))
     (sdir / "scene_camera.json").write_text(json.dumps(cam))
-    (root / "camera.json").write_text(json.dumps({"width": width, "height": 480}))
+    (root / "camera.json").write_text(json.dumps({"width": width, "height": 480, "fx": 572.4114, "fy": 573.57043,
+                                                  "cx": 325.2611, "cy": 242.04899, "depth_scale": 1.0}))
     (root / "test_targets_bop19.json").write_text(json.dumps(
         [{"scene_id": 1, "im_id": im, "obj_id": o, "inst_count": n} for (im, o), n in targets.items()]))
     return root

@@ -30,7 +30,6 @@ VSD needs depth images and a depth renderer; it is not computed here and the out
 
 from __future__ import annotations
 
-import json
 import os
 from collections import defaultdict
 from collections.abc import Sequence
@@ -91,68 +90,36 @@ class BopGt:
 # ---------------------------------------------------------------------------------------------
 # dataset
 # ---------------------------------------------------------------------------------------------
-def _load_json(path: Path):
-    if not path.is_file():
-        raise BopScoringError(f"{path}: file does not exist")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise BopScoringError(f"{path}: invalid JSON ({exc})") from exc
-
-
-def load_targets(path: str | os.PathLike) -> dict[tuple[int, int], dict[int, int]]:
-    """``test_targets_bop19.json`` -> ``{(scene_id, im_id): {obj_id: inst_count}}``."""
-    path = Path(path)
-    raw = _load_json(path)
-    if not isinstance(raw, list):
-        raise BopScoringError(f"{path}: expected a list of targets, got {type(raw).__name__}")
-    out: dict[tuple[int, int], dict[int, int]] = {}
-    for i, tgt in enumerate(raw):
-        missing = [k for k in ("scene_id", "im_id", "obj_id", "inst_count") if k not in tgt]
-        if missing:
-            raise BopScoringError(f"{path}: target #{i} has no field(s) {missing}: {tgt}")
-        out.setdefault((int(tgt["scene_id"]), int(tgt["im_id"])), {})[int(tgt["obj_id"])] = int(tgt["inst_count"])
-    return out
-
-
 def load_bop_gt(root: str | os.PathLike, split: str = "test",
                 targets_filename: str = "test_targets_bop19.json") -> BopGt:
-    """Read targets, ``scene_gt.json``, ``scene_gt_info.json`` and ``scene_camera.json`` of the target scenes."""
+    """GT instances (of the target objects), K and image width of the target images (via :class:`kpd6d.data.BopDataset`)."""
+    from kpd6d.data import BopDataset
+    from kpd6d.data.bop_io import BopFormatError
+
     root = Path(root)
-    targets = load_targets(root / targets_filename)
-    cam = root / "camera.json"
-    default_width = int(_load_json(cam).get("width", 640)) if cam.is_file() else 640
-    instances: dict[tuple[int, int], list[GtInstance]] = {}
-    Ks: dict[tuple[int, int], np.ndarray] = {}
-    widths: dict[int, int] = {}
-    for scene_id in sorted({s for s, _ in targets}):
-        sdir = root / split / f"{scene_id:06d}"
-        if not sdir.is_dir():
-            raise BopScoringError(f"{sdir}: scene folder of targets in {root / targets_filename} does not exist")
-        gt = _load_json(sdir / "scene_gt.json")
-        info = _load_json(sdir / "scene_gt_info.json")
-        camera = _load_json(sdir / "scene_camera.json")
-        widths[scene_id] = default_width
-        for (s, im), _ in targets.items():
-            if s != scene_id:
-                continue
-            key = str(im)
-            for name, table in (("scene_gt.json", gt), ("scene_gt_info.json", info), ("scene_camera.json", camera)):
-                if key not in table:
-                    raise BopScoringError(f"{sdir / name}: no entry for image {im} (a target in {targets_filename})")
-            if len(gt[key]) != len(info[key]):
-                raise BopScoringError(f"{sdir}: image {im} has {len(gt[key])} GT poses but {len(info[key])} gt_info entries")
-            insts = []
-            for gid, (g, gi) in enumerate(zip(gt[key], info[key])):
-                try:
-                    insts.append(GtInstance(gid, int(g["obj_id"]), np.asarray(g["cam_R_m2c"], float).reshape(3, 3),
-                                            np.asarray(g["cam_t_m2c"], float).reshape(3), float(gi["visib_fract"])))
-                except KeyError as exc:
-                    raise BopScoringError(f"{sdir}: image {im} GT #{gid} has no field {exc}") from None
-            instances[(s, im)] = insts
-            if "cam_K" not in camera[key]:
-                raise BopScoringError(f"{sdir / 'scene_camera.json'}: image {im} has no field 'cam_K'")
-            Ks[(s, im)] = np.asarray(camera[key]["cam_K"], float).reshape(3, 3)
+    if not (root / targets_filename).is_file():
+        raise BopScoringError(f"{root / targets_filename}: file does not exist (BOP19 scoring needs the targets)")
+    try:
+        ds = BopDataset(root, split, targets=targets_filename)
+    except (FileNotFoundError, BopFormatError) as exc:
+        raise BopScoringError(str(exc)) from exc
+    width = int(ds.camera["width"]) if ds.camera is not None else 640
+    targets, instances, Ks, widths = {}, {}, {}, {}
+    for f in ds:
+        key = (f.scene_id, f.im_id)
+        targets[key] = dict(f.targets or {})
+        insts = []
+        for inst in f.instances:
+            if inst.visib_fract is None:
+                raise BopScoringError(f"{f.scene_dir}: scene_gt_info.json is missing (needed for visib_fract)")
+            insts.append(GtInstance(inst.gt_index, int(inst.obj_id), np.asarray(inst.R, float).reshape(3, 3),
+                                    np.asarray(inst.t, float).reshape(3), float(inst.visib_fract)))
+        instances[key] = insts
+        Ks[key] = np.asarray(f.K, float).reshape(3, 3)
+        widths[f.scene_id] = width
+    for key in ds.targets or {}:  # targets without an annotated frame entry (all instances filtered)
+        targets.setdefault(key, dict(ds.targets[key]))
+        instances.setdefault(key, [])
     return BopGt(targets, instances, Ks, widths)
 
 
@@ -313,7 +280,7 @@ def score_bop19(results: Sequence[PoseResult], root: str | os.PathLike, split: s
         insts = gt.instances[(scene, im)]
         valid = _valid_mask(insts, im_targets, visib_gt_min)
         for oid, inst_count in sorted(im_targets.items()):
-            gids = [g.gt_id for g in insts if g.obj_id == oid]
+            gids = [j for j, g in enumerate(insts) if g.obj_id == oid]  # positions in insts
             if not gids:
                 continue
             if oid not in models:

@@ -10,7 +10,7 @@ import pytest
 import trimesh
 
 from kpd6d.cli.score import main as score_main
-from kpd6d.evaluation.bop19 import greedy_match, mspd_batch, mssd_batch, score_bop19
+from kpd6d.evaluation.bop19 import bop_symmetry_transforms, greedy_match, mspd_batch, mssd_batch, score_bop19
 from kpd6d.evaluation.results_io import PoseResult, write_bop_results
 from kpd6d.geometry import LINEMOD_K, random_rotation, rotation_about_axis
 
@@ -81,6 +81,18 @@ def test_mssd_mspd_against_independent_computations():
     R_flip = R_g @ S[:3, :3]
     assert np.all(mssd_batch(R_flip, t_g, R_g, t_g, pts, np.eye(4)[None]) > 1)
     np.testing.assert_allclose(mssd_batch(R_flip, t_g, R_g, t_g, pts, np.stack([np.eye(4), S])), 0, atol=1e-9)
+    # against the per-pair reference errors of kpd6d.evaluation.errors (with a continuous symmetry)
+    from kpd6d.evaluation.errors import mspd_error, mssd_error
+
+    syms = bop_symmetry_transforms({"symmetries_continuous": [{"axis": [0, 0, 1], "offset": [0, 0, 0]}]})
+    assert len(syms) == 315  # ceil(pi / 0.01), as bop_toolkit
+    R_e = R_g @ rotation_about_axis([0, 0, 1], 0.3) @ rotation_about_axis([1, 0, 0], 0.02)
+    got_s = mssd_batch(R_e, t_g + off, R_g, t_g, pts, syms)
+    got_p = mspd_batch(R_e, t_g + off, R_g, t_g, LINEMOD_K, pts, syms)
+    for i in range(5):
+        assert got_s[i] == pytest.approx(mssd_error(R_e[i], t_g[i] + off[i], R_g[i], t_g[i], pts, syms), rel=1e-9)
+        assert got_p[i] == pytest.approx(mspd_error(R_e[i], t_g[i] + off[i], R_g[i], t_g[i], pts, LINEMOD_K, syms),
+                                         rel=1e-9)
     # MSPD against OpenCV's projection
     R_e = R_g @ rotation_about_axis([1, 0, 0], 0.05)
     got = mspd_batch(R_e, t_g + off, R_g, t_g, LINEMOD_K, pts, np.eye(4)[None])

@@ -124,33 +124,11 @@ def load_bop_gt(root: str | os.PathLike, split: str = "test",
 
 
 def bop_symmetry_transforms(info: dict, max_sym_disc_step: float = MAX_SYM_DISC_STEP) -> np.ndarray:
-    """(S, 4, 4) symmetry transforms of a models_info entry, discretised as bop_toolkit does.
-
-    Delegates to :func:`kpd6d.evaluation.errors.symmetry_transforms` with the toolkit's step:
-    ``ceil(pi / max_sym_disc_step)`` rotations over 360 degrees.
-    """
+    """(S, 4, 4) symmetry transforms of a models_info entry, discretised as bop_toolkit does
+    (:func:`kpd6d.evaluation.errors.symmetry_transforms`)."""
     from kpd6d.evaluation.errors import symmetry_transforms
 
-    n_steps = int(np.ceil(np.pi / max_sym_disc_step))
-    syms = symmetry_transforms(info, continuous_step_deg=360.0 / n_steps)
-    return _as_transform_array(syms)
-
-
-def _as_transform_array(syms) -> np.ndarray:
-    if isinstance(syms, np.ndarray):
-        arr = syms
-    else:
-        mats = []
-        for s in syms:
-            if isinstance(s, dict):
-                T = np.eye(4)
-                T[:3, :3] = np.asarray(s["R"], float).reshape(3, 3)
-                T[:3, 3] = np.asarray(s["t"], float).reshape(3)
-                mats.append(T)
-            else:
-                mats.append(np.asarray(s, float).reshape(4, 4))
-        arr = np.stack(mats)
-    return np.asarray(arr, dtype=np.float64).reshape(-1, 4, 4)
+    return np.asarray(symmetry_transforms(info, max_sym_disc_step=max_sym_disc_step), dtype=np.float64)
 
 
 def load_eval_models(root: str | os.PathLike) -> dict[int, dict]:

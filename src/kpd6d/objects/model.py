@@ -172,11 +172,12 @@ def _diameter(v: np.ndarray) -> float:
             pts = v[ConvexHull(v).vertices]
     except Exception:  # degenerate (flat) point sets: use all of them
         pts = v
+    from scipy.spatial.distance import cdist
+
     best = 0.0
-    for i in range(0, len(pts), 512):  # chunked to bound memory
-        d = np.linalg.norm(pts[i : i + 512, None, :] - pts[None, :, :], axis=-1)
-        best = max(best, float(d.max()))
-    return best
+    for i in range(0, len(pts), 2048):  # chunked to bound memory
+        best = max(best, float(cdist(pts[i : i + 2048], pts, "sqeuclidean").max()))
+    return best ** 0.5
 
 
 def load_models_info(path: str | os.PathLike) -> dict[int, dict]:

@@ -1,0 +1,13 @@
+"""Synthetic training data: render-and-paste images of object models written as BOP datasets.
+
+``generate_dataset(out_dir, models_dir=None, ...)`` is the entry point (CLI: ``kpd6d-generate``);
+:mod:`~kpd6d.synth.poses` samples poses, :mod:`~kpd6d.synth.backgrounds` makes backgrounds,
+:mod:`~kpd6d.synth.distractors` makes occluders, :mod:`~kpd6d.synth.scene` composes one image,
+:mod:`~kpd6d.synth.photometric` applies blur / noise / colour shifts. BOP files are written through
+:mod:`kpd6d.data`.
+"""
+
+from kpd6d.synth.config import SynthConfig, default_K
+from kpd6d.synth.generate import generate_dataset, image_rng
+
+__all__ = ["SynthConfig", "default_K", "generate_dataset", "image_rng"]

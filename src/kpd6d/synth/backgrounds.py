@@ -1,0 +1,196 @@
+"""Backgrounds for render-and-paste: a user folder of images, else procedural ones made in code.
+
+Procedural backgrounds mix a base (gradient, multi-octave noise, stripes / checkerboard texture)
+with random shapes and small clutter, then a little grain. Nothing is downloaded.
+"""
+
+from __future__ import annotations
+
+import os
+from collections import OrderedDict
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["BackgroundSource", "FolderBackgrounds", "ProceduralBackgrounds", "make_background_source",
+           "procedural_background"]
+
+#: file extensions OpenCV reads (cv2.imread)
+IMAGE_EXTENSIONS = (".jpg", ".jpeg", ".png", ".bmp", ".tif", ".tiff", ".webp", ".ppm", ".pgm", ".pbm",
+                    ".pnm", ".jp2", ".sr", ".ras", ".exr", ".hdr", ".pic")
+
+
+class BackgroundSource:
+    def sample(self, rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+        """An RGB uint8 (height, width, 3) background."""
+        raise NotImplementedError
+
+
+def _random_color(rng: np.random.Generator) -> tuple[int, int, int]:
+    return tuple(int(c) for c in rng.integers(0, 256, 3))
+
+
+def _gradient(rng, w, h):
+    c0, c1 = rng.uniform(0, 255, 3), rng.uniform(0, 255, 3)
+    if rng.random() < 0.5:  # linear
+        a = rng.uniform(0, 2 * np.pi)
+        xs = np.cos(a) * np.linspace(-1, 1, w)[None, :] + np.sin(a) * np.linspace(-1, 1, h)[:, None]
+    else:  # radial
+        cx, cy = rng.uniform(-0.5, 0.5, 2)
+        xs = np.hypot(np.linspace(-1, 1, w)[None, :] - cx, np.linspace(-1, 1, h)[:, None] - cy)
+    s = (xs - xs.min()) / max(np.ptp(xs), 1e-6)
+    return (c0 + s[..., None] * (c1 - c0)).astype(np.float32)
+
+
+def _noise(rng, w, h):
+    import cv2
+
+    out = np.zeros((h, w, 3), np.float32)
+    amp, total = 1.0, 0.0
+    base = int(rng.integers(2, 8))
+    for octave in range(4):
+        n = base * 2**octave
+        small = rng.random((max(2, n * h // w), n, 3)).astype(np.float32)
+        out += amp * cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
+        total += amp
+        amp *= rng.uniform(0.35, 0.65)
+    out /= total
+    lo, hi = rng.uniform(0, 255, 3), rng.uniform(0, 255, 3)
+    return np.clip(lo + out * (hi - lo), 0, 255).astype(np.float32)
+
+
+def _texture(rng, w, h):
+    import cv2
+
+    period = rng.uniform(4, 60)
+    a = rng.uniform(0, np.pi)
+    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
+    u = np.cos(a) * xx + np.sin(a) * yy
+    if rng.random() < 0.5:  # stripes
+        s = (0.5 + 0.5 * np.sin(2 * np.pi * u / period)) if rng.random() < 0.5 else ((u // period) % 2)
+    else:  # checkerboard
+        v = -np.sin(a) * xx + np.cos(a) * yy
+        s = ((u // period + v // period) % 2).astype(np.float32)
+    s = cv2.GaussianBlur(s.astype(np.float32), (0, 0), rng.uniform(0.3, 2.0))
+    c0, c1 = rng.uniform(0, 255, 3), rng.uniform(0, 255, 3)
+    return (c0 + s[..., None] * (c1 - c0)).astype(np.float32)
+
+
+def _shapes(rng, img, count, max_size):
+    import cv2
+
+    h, w = img.shape[:2]
+    for _ in range(count):
+        color = _random_color(rng)
+        kind = rng.integers(0, 5)
+        cx, cy = int(rng.integers(0, w)), int(rng.integers(0, h))
+        s = int(rng.integers(2, max(3, max_size)))
+        filled = -1 if rng.random() < 0.7 else int(rng.integers(1, 6))
+        if kind == 0:
+            cv2.rectangle(img, (cx - s, cy - s // 2), (cx + s, cy + s // 2), color, filled)
+        elif kind == 1:
+            cv2.circle(img, (cx, cy), s, color, filled)
+        elif kind == 2:
+            cv2.ellipse(img, (cx, cy), (s, max(1, s // 3)), float(rng.uniform(0, 180)), 0, 360, color, filled)
+        elif kind == 3:
+            pts = (np.array([cx, cy]) + rng.integers(-s, s + 1, (int(rng.integers(3, 7)), 2))).astype(np.int32)
+            cv2.fillPoly(img, [pts], color)
+        else:
+            p2 = (cx + int(rng.integers(-2 * s, 2 * s + 1)), cy + int(rng.integers(-2 * s, 2 * s + 1)))
+            cv2.line(img, (cx, cy), p2, color, int(rng.integers(1, 8)))
+
+
+def procedural_background(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
+    """One procedural RGB uint8 background (height, width, 3)."""
+    import cv2
+
+    kind = rng.integers(0, 3)
+    base = (_gradient, _noise, _texture)[kind](rng, width, height)
+    if rng.random() < 0.5:  # blend two bases for more variety
+        other = (_gradient, _noise, _texture)[rng.integers(0, 3)](rng, width, height)
+        a = rng.uniform(0.2, 0.8)
+        base = a * base + (1 - a) * other
+    img = np.ascontiguousarray(np.clip(base, 0, 255).astype(np.uint8))
+    scale = max(width, height)
+    _shapes(rng, img, int(rng.integers(0, 12)), scale // 4)  # large shapes
+    _shapes(rng, img, int(rng.integers(0, 60)), max(4, scale // 25))  # clutter
+    if rng.random() < 0.5:
+        img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.5, 2.0))
+    sigma = rng.uniform(0, 8)
+    if sigma > 1:
+        grain = rng.normal(0, sigma, (height // 2 + 1, width // 2 + 1, 1)).astype(np.float32)
+        grain = cv2.resize(grain, (width, height), interpolation=cv2.INTER_NEAREST)[..., None]
+        img = np.clip(img.astype(np.float32) + grain, 0, 255).astype(np.uint8)
+    return img
+
+
+class ProceduralBackgrounds(BackgroundSource):
+    def sample(self, rng, width, height):
+        return procedural_background(rng, width, height)
+
+    def __repr__(self) -> str:
+        return "ProceduralBackgrounds()"
+
+
+class FolderBackgrounds(BackgroundSource):
+    """Images under ``folder`` (recursively; any format OpenCV reads), randomly cropped to the output
+    aspect ratio, flipped and resized. Decoded images are kept in a small per-process LRU cache."""
+
+    def __init__(self, folder: str | os.PathLike, cache_mb: float = 256.0) -> None:
+        self.folder = Path(folder)
+        if not self.folder.is_dir():
+            raise FileNotFoundError(f"backgrounds_dir {self.folder}: folder does not exist")
+        self.files = sorted(
+            p for p in self.folder.rglob("*") if p.is_file() and p.suffix.lower() in IMAGE_EXTENSIONS
+        )
+        if not self.files:
+            raise FileNotFoundError(
+                f"backgrounds_dir {self.folder}: no image files found (extensions: {', '.join(IMAGE_EXTENSIONS)})"
+            )
+        self._cache: OrderedDict[int, np.ndarray] = OrderedDict()
+        self._cache_bytes, self._cache_limit = 0, int(cache_mb * 2**20)
+
+    def _load(self, i: int) -> np.ndarray:
+        img = self._cache.get(i)
+        if img is not None:
+            self._cache.move_to_end(i)
+            return img
+        import cv2
+
+        path = self.files[i]
+        img = cv2.imread(str(path), cv2.IMREAD_COLOR)
+        if img is None or img.size == 0:
+            raise OSError(f"background image {path}: cannot be read as an image (corrupt or unsupported format)")
+        img = np.ascontiguousarray(img[..., ::-1])
+        self._cache[i] = img
+        self._cache_bytes += img.nbytes
+        while self._cache_bytes > self._cache_limit and len(self._cache) > 1:
+            _, old = self._cache.popitem(last=False)
+            self._cache_bytes -= old.nbytes
+        return img
+
+    def sample(self, rng, width, height):
+        import cv2
+
+        img = self._load(int(rng.integers(len(self.files))))
+        h, w = img.shape[:2]
+        aspect = width / height
+        cw = min(w, h * aspect)
+        s = rng.uniform(0.5, 1.0)
+        cw = max(1.0, cw * s)
+        ch = max(1.0, cw / aspect)
+        x0 = rng.uniform(0, w - cw) if w > cw else 0.0
+        y0 = rng.uniform(0, h - ch) if h > ch else 0.0
+        crop = img[int(y0):int(y0 + ch) or 1, int(x0):int(x0 + cw) or 1]
+        if rng.random() < 0.5:
+            crop = crop[:, ::-1]
+        interp = cv2.INTER_AREA if crop.shape[1] > width else cv2.INTER_LINEAR
+        return np.ascontiguousarray(cv2.resize(np.ascontiguousarray(crop), (width, height), interpolation=interp))
+
+    def __repr__(self) -> str:
+        return f"FolderBackgrounds({str(self.folder)!r}, files={len(self.files)})"
+
+
+def make_background_source(backgrounds_dir: str | os.PathLike | None) -> BackgroundSource:
+    """A :class:`FolderBackgrounds` for a folder, else :class:`ProceduralBackgrounds`."""
+    return FolderBackgrounds(backgrounds_dir) if backgrounds_dir else ProceduralBackgrounds()

@@ -1,0 +1,160 @@
+"""Settings of the synthetic-data generator (the ``**options`` of :func:`generate_dataset`, and
+``conf/generate.yaml``)."""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Mapping
+from dataclasses import asdict, dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K
+from kpd6d.synth.photometric import PhotometricConfig
+from kpd6d.synth.poses import ViewRanges
+
+__all__ = ["SynthConfig", "default_K"]
+
+
+def default_K(width: int, height: int) -> np.ndarray:
+    """LineMod's K, scaled to (width, height) (identical at 640x480)."""
+    W0, H0 = LINEMOD_IMAGE_SIZE
+    K = LINEMOD_K.copy()
+    sx, sy = width / W0, height / H0
+    K[0, 0] *= sx
+    K[0, 2] = (K[0, 2] + 0.5) * sx - 0.5  # pixel centres at integers: scale about the image corner
+    K[1, 1] *= sy
+    K[1, 2] = (K[1, 2] + 0.5) * sy - 0.5
+    return K
+
+
+def _pair(name: str, v: Any) -> tuple[float, float]:
+    try:
+        a, b = (float(x) for x in v)
+    except (TypeError, ValueError):
+        raise ValueError(f"{name} must be a pair [low, high], got {v!r}") from None
+    if not (math.isfinite(a) and math.isfinite(b)) or a > b:
+        raise ValueError(f"{name} must be [low, high] with finite low <= high, got {v!r}")
+    return a, b
+
+
+@dataclass
+class SynthConfig:
+    """All generator options; see docs/data.md for what each one does."""
+
+    width: int = LINEMOD_IMAGE_SIZE[0]
+    height: int = LINEMOD_IMAGE_SIZE[1]
+    K: list | None = None  # 3x3 or 9 values; None: LineMod K scaled to width x height
+    # objects and occluders
+    objects_per_image: Any = (1, 1)  # [min, max] or "all"
+    distractors: tuple[int, int] = (0, 2)  # [min, max] random primitive occluders per image
+    distractor_pool_size: int = 24
+    distractor_size: tuple[float, float] = (0.3, 1.0)  # apparent size relative to the occluded object's box
+    visib_fract_range: tuple[float, float] = (0.3, 1.0)  # every object's visible fraction must lie in it
+    max_retries: int = 10  # scene re-samples to meet visib_fract_range (then the closest one is kept)
+    # poses
+    distance_range: tuple[float, float] = (346.0, 1500.0)  # mm
+    elevation_range: tuple[float, float] = (-15.0, 90.0)  # degrees
+    azimuth_range: tuple[float, float] = (0.0, 360.0)
+    inplane_range: tuple[float, float] = (-45.0, 45.0)
+    view_margin: float = 0.1  # fraction of the object's box allowed outside the image
+    canonicalize_symmetric: bool = True
+    # appearance
+    lighting: str = "random"  # "random" (Lighting.random per image) or "fixed"
+    specular_prob: float = 0.3
+    backgrounds_dir: str | None = None  # folder of images; None: procedural backgrounds
+    feather_sigma: float = 0.7  # px; softens the pasted objects' edges (0: hard paste)
+    photometric: dict = field(default_factory=dict)  # PhotometricConfig fields; {"prob": 0} turns off
+    # keypoints
+    designator: dict | None = field(default_factory=lambda: {"name": "fps", "num_keypoints": 16})
+    # output
+    rgb_format: str = "png"  # png | jpg
+    png_compression: int = 1
+    jpg_quality: int = 95
+    depth: bool = False
+    depth_scale: float = 0.1  # stored depth value x depth_scale = mm
+    scene_size: int = 1000  # images per scene folder
+    procedural_seed: int = 0  # seed of procedural_objects() when models_dir is None
+    mp_start_method: str = "spawn"  # multiprocessing start method of the worker pool
+    flush_interval_s: float = 5.0  # how often scene JSON files are rewritten during a run
+
+    @classmethod
+    def from_options(cls, options: Mapping[str, Any] | None = None) -> SynthConfig:
+        """Build from keyword options; unknown names raise an error listing the known ones."""
+        options = dict(options or {})
+        known = [f.name for f in fields(cls)]
+        unknown = sorted(set(options) - set(known))
+        if unknown:
+            raise TypeError(f"generate_dataset: unknown option(s) {', '.join(unknown)}; known options: {', '.join(known)}")
+        cfg = cls(**options)
+        cfg.validate()
+        return cfg
+
+    def validate(self) -> None:
+        self.width, self.height = int(self.width), int(self.height)
+        if self.width < 8 or self.height < 8:
+            raise ValueError(f"image size must be at least 8x8, got width={self.width}, height={self.height}")
+        if self.K is not None:
+            K = np.asarray(self.K, dtype=np.float64)
+            if K.size != 9 or not np.isfinite(K).all():
+                raise ValueError(f"K must be a 3x3 matrix (or 9 values), got {self.K!r}")
+            K = K.reshape(3, 3)
+            if K[0, 0] <= 0 or K[1, 1] <= 0:
+                raise ValueError(f"K must have positive focal lengths, got fx={K[0, 0]}, fy={K[1, 1]}")
+            self.K = K.tolist()
+        if isinstance(self.objects_per_image, str):
+            if self.objects_per_image != "all":
+                raise ValueError(f"objects_per_image must be [min, max] or 'all', got {self.objects_per_image!r}")
+        elif isinstance(self.objects_per_image, int | np.integer):
+            self.objects_per_image = (int(self.objects_per_image),) * 2
+        else:
+            lo, hi = _pair("objects_per_image", self.objects_per_image)
+            if lo < 1:
+                raise ValueError(f"objects_per_image must be at least 1, got {self.objects_per_image!r}")
+            self.objects_per_image = (int(lo), int(hi))
+        lo, hi = _pair("distractors", self.distractors)
+        if lo < 0:
+            raise ValueError(f"distractors must be >= 0, got {self.distractors!r}")
+        self.distractors = (int(lo), int(hi))
+        self.distractor_size = _pair("distractor_size", self.distractor_size)
+        self.visib_fract_range = _pair("visib_fract_range", self.visib_fract_range)
+        if not (0.0 <= self.visib_fract_range[0] and self.visib_fract_range[1] <= 1.0):
+            raise ValueError(f"visib_fract_range must lie within [0, 1], got {list(self.visib_fract_range)}")
+        for name in ("distance_range", "elevation_range", "azimuth_range", "inplane_range"):
+            setattr(self, name, _pair(name, getattr(self, name)))
+        self.view_ranges()  # validates the angle / distance ranges
+        if self.lighting not in ("random", "fixed"):
+            raise ValueError(f"lighting must be 'random' or 'fixed', got {self.lighting!r}")
+        if self.rgb_format not in ("png", "jpg"):
+            raise ValueError(f"rgb_format must be 'png' or 'jpg', got {self.rgb_format!r}")
+        if int(self.scene_size) < 1:
+            raise ValueError(f"scene_size must be >= 1, got {self.scene_size}")
+        if self.depth_scale <= 0:
+            raise ValueError(f"depth_scale must be > 0, got {self.depth_scale}")
+        if self.max_retries < 0:
+            raise ValueError(f"max_retries must be >= 0, got {self.max_retries}")
+        if self.mp_start_method not in ("spawn", "forkserver", "fork"):
+            raise ValueError(f"mp_start_method must be spawn, forkserver or fork, got {self.mp_start_method!r}")
+        if self.designator is not None:  # None: write no keypoints.json
+            if not isinstance(self.designator, Mapping) or "name" not in self.designator:
+                raise ValueError(f"designator must be a mapping with a 'name' key (or null), got {self.designator!r}")
+            self.designator = dict(self.designator)
+        self.photometric = dict(self.photometric or {})
+        PhotometricConfig.from_mapping(self.photometric)  # validates
+        if self.backgrounds_dir is not None:
+            self.backgrounds_dir = str(self.backgrounds_dir)
+
+    # -- derived ---------------------------------------------------------------------------------
+    def camera_K(self) -> np.ndarray:
+        return np.asarray(self.K, dtype=np.float64).reshape(3, 3) if self.K is not None else default_K(self.width, self.height)
+
+    def view_ranges(self) -> ViewRanges:
+        return ViewRanges(self.distance_range, self.elevation_range, self.azimuth_range, self.inplane_range)
+
+    def photometric_config(self) -> PhotometricConfig:
+        return PhotometricConfig.from_mapping(self.photometric)
+
+    def to_dict(self) -> dict:
+        d = asdict(self)
+        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}

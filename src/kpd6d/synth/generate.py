@@ -1,0 +1,349 @@
+"""``generate_dataset``: write a synthetic BOP dataset (render-and-paste), in parallel, resumably.
+
+Image ``i`` lands in scene ``i // scene_size`` as image ``i % scene_size`` and is made with its own
+random generator seeded from ``(seed, i)``, so the result does not depend on scheduling or on the
+number of workers. Workers write each image's files (rgb, mask_visib, depth) atomically and return
+its annotations; the main process keeps the scene JSON files and rewrites them atomically every few
+seconds and at the end. An image is complete when all three scene JSON files list it and its files
+exist; a rerun skips complete images and makes the rest (after an interruption, the same bytes).
+"""
+
+from __future__ import annotations
+
+import os
+import shutil
+import time
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kpd6d.data.bop_io import (
+    BopFormatError,
+    atomic_write_bytes,
+    atomic_write_image,
+    atomic_write_json,
+    load_scene_camera,
+    load_scene_gt,
+    load_scene_gt_info,
+    read_json,
+    save_camera,
+    save_scene_camera,
+    save_scene_gt,
+    save_scene_gt_info,
+)
+from kpd6d.synth.config import SynthConfig
+
+__all__ = ["generate_dataset", "image_rng", "resolve_workers"]
+
+INFO_FILE = "dataset_info.json"
+
+
+def image_rng(seed: int, index: int) -> np.random.Generator:
+    """The random generator of image ``index`` (independent of scheduling)."""
+    return np.random.default_rng([int(seed), int(index)])
+
+
+def resolve_workers(workers: int | None) -> int:
+    """``workers`` <= 0 or None -> all cores (``os.cpu_count()``)."""
+    if workers is None or int(workers) <= 0:
+        return max(1, os.cpu_count() or 1)
+    return int(workers)
+
+
+# ---------------------------------------------------------------------------------------------
+# models folder
+# ---------------------------------------------------------------------------------------------
+def _write_models(root: Path, models_dir: Path | None, obj_ids: list[int] | None, cfg: SynthConfig) -> list[int]:
+    """Fill ``<root>/models`` (meshes, models_info.json, keypoints.json) unless already there."""
+    from kpd6d.objects import load_bop_models
+
+    out = root / "models"
+    out.mkdir(parents=True, exist_ok=True)
+    _remove_stale_tmp(out)
+    info_path = out / "models_info.json"
+    if models_dir is None:
+        from kpd6d.objects import procedural_objects
+
+        models = procedural_objects(seed=cfg.procedural_seed, obj_ids=obj_ids)
+        for m in models:
+            p = out / f"obj_{m.obj_id:06d}.ply"
+            if not p.is_file():
+                atomic_write_bytes(p, m.mesh.export(file_type="ply"))
+    else:
+        models = load_bop_models(models_dir, obj_ids)
+        for m in models:
+            src = Path(m.source)
+            for f in sorted(src.parent.glob(src.stem + ".*")):  # the mesh and its texture image(s)
+                dst = out / f.name
+                if not dst.is_file():
+                    tmp = out / f".{f.name}.copy.tmp"
+                    shutil.copyfile(f, tmp)
+                    os.replace(tmp, dst)
+    ids = [m.obj_id for m in models]
+    if not info_path.is_file():
+        atomic_write_json(info_path, {str(m.obj_id): m.info() for m in models})
+    if cfg.designator is not None and not (out / "keypoints.json").is_file():
+        from kpd6d.keypoints import save_keypoints
+        from kpd6d.registry import DESIGNATORS, build_from_cfg
+
+        designator = build_from_cfg(DESIGNATORS, cfg.designator)
+        shipped = load_bop_models(out, ids)  # designate on the meshes the dataset ships
+        kps = {m.obj_id: np.asarray(designator(m), dtype=np.float64) for m in shipped}
+        params = {k: v for k, v in cfg.designator.items() if k != "name"}
+        save_keypoints(out / "keypoints.json", kps, designator=cfg.designator["name"], params=params)
+    return ids
+
+
+def _remove_stale_tmp(folder: Path) -> None:
+    """Delete temporary files an interrupted run left behind (``.<name>.*.tmp``)."""
+    if folder.is_dir():
+        for p in folder.glob(".*.tmp"):
+            try:
+                p.unlink()
+            except OSError:
+                pass
+
+
+# ---------------------------------------------------------------------------------------------
+# worker side
+# ---------------------------------------------------------------------------------------------
+_STATE: dict[str, Any] = {}
+
+
+def _init_worker(spec: dict) -> None:
+    """Build this process's renderer, models, backgrounds and occluders (once per worker)."""
+    if spec.get("single_thread_gl"):
+        os.environ.setdefault("LP_NUM_THREADS", "1")
+    from kpd6d.objects import load_bop_models
+    from kpd6d.render import Renderer
+    from kpd6d.synth.backgrounds import make_background_source
+    from kpd6d.synth.distractors import distractor_pool
+    from kpd6d.synth.scene import SceneComposer
+
+    cfg = SynthConfig.from_options(spec["config"])
+    models = load_bop_models(Path(spec["root"]) / "models", spec["obj_ids"])
+    handlers = None
+    if cfg.canonicalize_symmetric:
+        from kpd6d.symmetry import handler_for_model
+
+        handlers = [handler_for_model(m) for m in models]
+    renderer = Renderer(cfg.width, cfg.height, cfg.camera_K())
+    pool = distractor_pool(spec["seed"], cfg.distractor_pool_size) if cfg.distractors[1] > 0 else []
+    _STATE.clear()
+    _STATE.update(
+        spec=spec, cfg=cfg, renderer=renderer,
+        composer=SceneComposer(renderer, models, cfg, make_background_source(cfg.backgrounds_dir), pool, handlers),
+    )
+
+
+def _make_image(index: int) -> dict:
+    """Compose image ``index``, write its files, return its annotations."""
+    spec, cfg, composer = _STATE["spec"], _STATE["cfg"], _STATE["composer"]
+    scene_id, im_id = divmod(index, cfg.scene_size)
+    sd = Path(spec["split_dir"]) / f"{scene_id:06d}"
+    sample = composer.compose(image_rng(spec["seed"], index))
+    for j, inst in enumerate(sample.instances):
+        atomic_write_image(sd / "mask_visib" / f"{im_id:06d}_{j:06d}.png", inst.mask_visib.astype(np.uint8) * 255,
+                           png_compression=cfg.png_compression)
+    if cfg.depth:
+        d = np.clip(np.round(sample.depth / cfg.depth_scale), 0, 65535).astype(np.uint16)
+        atomic_write_image(sd / "depth" / f"{im_id:06d}.png", d, png_compression=cfg.png_compression)
+    atomic_write_image(sd / "rgb" / f"{im_id:06d}.{cfg.rgb_format}", sample.rgb,
+                       png_compression=cfg.png_compression, jpg_quality=cfg.jpg_quality)
+    return {
+        "index": index, "scene_id": scene_id, "im_id": im_id,
+        "gt": [inst.gt() for inst in sample.instances],
+        "camera": {"K": sample.K, "depth_scale": cfg.depth_scale},
+        "info": [inst.info() for inst in sample.instances],
+        "attempts": sample.attempts,
+    }
+
+
+# ---------------------------------------------------------------------------------------------
+# main side: scene bookkeeping
+# ---------------------------------------------------------------------------------------------
+class _SceneRecords:
+    """The three scene JSON dicts of one scene folder, loaded from disk on resume."""
+
+    def __init__(self, sd: Path) -> None:
+        self.dir = sd
+        self.gt: dict[int, list] = {}
+        self.cam: dict[int, dict] = {}
+        self.info: dict[int, list] = {}
+        paths = [sd / "scene_gt.json", sd / "scene_camera.json", sd / "scene_gt_info.json"]
+        if all(p.is_file() for p in paths):
+            try:
+                self.gt = load_scene_gt(paths[0])
+                self.cam = load_scene_camera(paths[1])
+                self.info = load_scene_gt_info(paths[2])
+            except BopFormatError as exc:
+                raise BopFormatError(f"cannot resume: {exc} (delete the scene folder {sd} to regenerate it)") from exc
+        self.dirty = False
+
+    def complete(self, im_id: int, rgb_ext: str, depth: bool) -> bool:
+        if im_id not in self.gt or im_id not in self.cam or im_id not in self.info:
+            return False
+        if len(self.info[im_id]) != len(self.gt[im_id]):
+            return False
+        files = [self.dir / "rgb" / f"{im_id:06d}.{rgb_ext}"]
+        files += [self.dir / "mask_visib" / f"{im_id:06d}_{j:06d}.png" for j in range(len(self.gt[im_id]))]
+        if depth:
+            files.append(self.dir / "depth" / f"{im_id:06d}.png")
+        return all(f.is_file() for f in files)
+
+    def add(self, rec: dict) -> None:
+        im = rec["im_id"]
+        self.gt[im] = rec["gt"]
+        self.cam[im] = rec["camera"]
+        self.info[im] = rec["info"]
+        self.dirty = True
+
+    def drop(self, im_id: int) -> None:
+        for d in (self.gt, self.cam, self.info):
+            d.pop(im_id, None)
+
+    def flush(self) -> None:
+        if not self.dirty:
+            return
+        self.dir.mkdir(parents=True, exist_ok=True)
+        save_scene_gt(self.dir / "scene_gt.json", self.gt)
+        save_scene_camera(self.dir / "scene_camera.json", self.cam)
+        save_scene_gt_info(self.dir / "scene_gt_info.json", self.info)
+        self.dirty = False
+
+
+def _check_info(root: Path, split: str, models_part: dict, split_part: dict) -> dict:
+    """Merge this run's settings into dataset_info.json; refuse to mix different settings."""
+    path = root / INFO_FILE
+    info = read_json(path, what=INFO_FILE) if path.is_file() else {}
+    if info.get("models") not in (None, models_part):
+        diff = sorted(k for k in set(models_part) | set(info["models"]) if info["models"].get(k) != models_part.get(k))
+        raise ValueError(
+            f"{path}: this dataset was generated with different model settings ({', '.join(diff)}: "
+            f"{ {k: info['models'].get(k) for k in diff} } vs now { {k: models_part.get(k) for k in diff} }); "
+            "use another out_dir or delete it"
+        )
+    old = info.get("splits", {}).get(split)
+    if old is not None:
+        keys = sorted(k for k in set(old) | set(split_part) if k != "num_images" and old.get(k) != split_part.get(k))
+        if keys:
+            raise ValueError(
+                f"{path}: split {split!r} was generated with different settings ({', '.join(keys)}); "
+                "resuming would mix them. Use another out_dir or split, or delete the split folder and its entry"
+            )
+        split_part = dict(split_part, num_images=max(int(old.get("num_images", 0)), split_part["num_images"]))
+    import kpd6d
+
+    info = {
+        "generator": "kpd6d.synth.generate_dataset",
+        "kpd6d_version": kpd6d.__version__,
+        "models": models_part,
+        "splits": {**info.get("splits", {}), split: split_part},
+    }
+    atomic_write_json(path, info)
+    return info
+
+
+# ---------------------------------------------------------------------------------------------
+# API
+# ---------------------------------------------------------------------------------------------
+def generate_dataset(out_dir: str | os.PathLike, models_dir: str | os.PathLike | None = None,
+                     obj_ids: Sequence[int] | None = None, num_images: int = 1000, split: str = "train",
+                     seed: int = 0, workers: int = 1, *, progress: bool = True, **options: Any) -> Path:
+    """Write ``num_images`` render-and-paste images of the objects as a BOP dataset under ``out_dir``.
+
+    ``models_dir`` is a BOP models folder (``obj_XXXXXX.ply`` + ``models_info.json``); ``None`` uses
+    the procedural objects. ``workers`` processes render in parallel (0 or -1: all cores).
+    ``options`` are the fields of :class:`~kpd6d.synth.config.SynthConfig` (conf/generate.yaml).
+    Returns the dataset root. Rerunning with the same arguments resumes an interrupted run.
+    """
+    cfg = SynthConfig.from_options(options)
+    num_images = int(num_images)
+    if num_images < 0:
+        raise ValueError(f"num_images must be >= 0, got {num_images}")
+    if not split or "/" in split or split in (".", ".."):
+        raise ValueError(f"split must be a plain folder name, got {split!r}")
+    root = Path(out_dir)
+    root.mkdir(parents=True, exist_ok=True)
+    if models_dir is not None and not Path(models_dir).is_dir():
+        raise FileNotFoundError(f"models_dir {models_dir}: folder does not exist")
+    ids = None if obj_ids is None else sorted(int(o) for o in obj_ids)
+    models_part = {
+        "source": "procedural" if models_dir is None else str(Path(models_dir).resolve()),
+        "obj_ids": ids,
+        "procedural_seed": cfg.procedural_seed if models_dir is None else None,
+        "designator": cfg.designator,
+    }
+    split_part = {"seed": int(seed), "num_images": num_images, "config": cfg.to_dict()}
+    split_part["config"].pop("mp_start_method")
+    split_part["config"].pop("flush_interval_s")
+    _check_info(root, split, models_part, split_part)
+    ids = _write_models(root, None if models_dir is None else Path(models_dir), ids, cfg)
+    K = cfg.camera_K()
+    if not (root / "camera.json").is_file():
+        save_camera(root / "camera.json", K, cfg.width, cfg.height, cfg.depth_scale)
+
+    split_dir = root / split
+    scenes: dict[int, _SceneRecords] = {}
+    todo: list[int] = []
+    for index in range(num_images):
+        scene_id, im_id = divmod(index, cfg.scene_size)
+        if scene_id not in scenes:
+            sd = split_dir / f"{scene_id:06d}"
+            for sub in ("", "rgb", "mask_visib", "depth"):
+                _remove_stale_tmp(sd / sub)
+            scenes[scene_id] = _SceneRecords(sd)
+        rec = scenes[scene_id]
+        if not rec.complete(im_id, cfg.rgb_format, cfg.depth):
+            rec.drop(im_id)
+            todo.append(index)
+    if not todo:
+        return root
+
+    spec = {
+        "root": str(root), "split_dir": str(split_dir), "obj_ids": ids, "seed": int(seed),
+        "config": {k: v for k, v in cfg.to_dict().items()},
+    }
+    n_workers = min(resolve_workers(workers), len(todo))
+    bar = None
+    if progress:
+        from tqdm.auto import tqdm
+
+        bar = tqdm(total=num_images, initial=num_images - len(todo), desc=f"generate {split}", unit="img")
+    last_flush = time.monotonic()
+
+    def consume(results):
+        nonlocal last_flush
+        for rec in results:
+            scenes[rec["scene_id"]].add(rec)
+            if bar is not None:
+                bar.update(1)
+            if time.monotonic() - last_flush > cfg.flush_interval_s:
+                for s in scenes.values():
+                    s.flush()
+                last_flush = time.monotonic()
+
+    try:
+        if n_workers == 1:
+            _init_worker(spec)
+            try:
+                consume(_make_image(i) for i in todo)
+            finally:
+                _STATE["renderer"].close()
+                _STATE.clear()
+        else:
+            import multiprocessing as mp
+
+            ctx = mp.get_context(cfg.mp_start_method)
+            spec["single_thread_gl"] = True
+            chunk = max(1, min(8, len(todo) // (4 * n_workers)))
+            with ctx.Pool(n_workers, initializer=_init_worker, initargs=(spec,)) as pool:
+                consume(pool.imap_unordered(_make_image, todo, chunksize=chunk))
+    finally:  # also on errors / Ctrl-C: record every image finished so far, so a rerun resumes
+        for s in scenes.values():
+            s.flush()
+        if bar is not None:
+            bar.close()
+    return root

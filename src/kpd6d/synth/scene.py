@@ -1,0 +1,226 @@
+"""Compose one synthetic image: sample poses, render all objects and occluders in one scene (so that
+mutual occlusion is right), paste them over a background, and compute the BOP ground truth.
+
+Ground truth follows bop_toolkit's ``calc_gt_info``: ``bbox_obj`` is the box of the whole silhouette
+(including any part outside the image; here from the projected model vertices, as pixel indices:
+``x = round(u_min)``, ``w = round(u_max) - x``), ``px_count_all`` the whole silhouette's pixel count
+(also outside the image), ``px_count_valid`` the silhouette's pixels inside the image (all of which
+have rendered depth), ``px_count_visib`` the visible-mask pixels, ``visib_fract = visib / all``.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+
+from kpd6d.data.bop_io import bbox_from_mask
+from kpd6d.geometry import project_points
+from kpd6d.synth.config import SynthConfig
+from kpd6d.synth.photometric import PhotometricConfig, apply_photometric
+from kpd6d.synth.poses import ModelGeometry, projected_box, sample_object_pose
+
+__all__ = ["SceneComposer", "SceneInstance", "SceneSample", "silhouette_counts"]
+
+
+@dataclass
+class SceneInstance:
+    obj_id: int
+    R: np.ndarray
+    t: np.ndarray
+    mask_visib: np.ndarray  # (H, W) bool
+    bbox_obj: list[int]
+    bbox_visib: list[int]
+    px_count_all: int
+    px_count_valid: int
+    px_count_visib: int
+    visib_fract: float
+
+    def gt(self) -> dict:
+        return {"obj_id": self.obj_id, "R": self.R, "t": self.t}
+
+    def info(self) -> dict:
+        return {
+            "bbox_obj": self.bbox_obj, "bbox_visib": self.bbox_visib, "px_count_all": self.px_count_all,
+            "px_count_valid": self.px_count_valid, "px_count_visib": self.px_count_visib,
+            "visib_fract": self.visib_fract,
+        }
+
+
+@dataclass
+class SceneSample:
+    rgb: np.ndarray  # (H, W, 3) uint8
+    depth: np.ndarray  # (H, W) float32 mm (objects and occluders; 0 on the background)
+    K: np.ndarray
+    instances: list[SceneInstance]
+    attempts: int = 1
+
+
+def bbox_obj_from_uv(uv: np.ndarray) -> list[int]:
+    """BOP box of a silhouette from its projected vertices, as pixel indices (bop_toolkit style)."""
+    lo = np.round(uv.min(axis=0)).astype(np.int64)
+    hi = np.round(uv.max(axis=0)).astype(np.int64)
+    return [int(lo[0]), int(lo[1]), int(hi[0] - lo[0]), int(hi[1] - lo[1])]
+
+
+def silhouette_counts(renderer, model, R, t, K, width, height, bbox_obj) -> tuple[int, int]:
+    """(pixels of the whole silhouette, pixels inside the image) of ``model`` at (R, t) rendered alone.
+
+    Parts outside the image are counted by rendering tiles of the image plane (the principal point
+    shifted by multiples of the image size) that cover ``bbox_obj``; tiles do not overlap, so the
+    count is exact.
+    """
+    x, y, w, h = bbox_obj
+    kx = range(math.floor((x - 1) / width), math.floor((x + w + 1) / width) + 1)
+    ky = range(math.floor((y - 1) / height), math.floor((y + h + 1) / height) + 1)
+    total, inside = 0, 0
+    for i in kx:
+        for j in ky:
+            Kt = np.array(K, dtype=np.float64)
+            Kt[0, 2] -= i * width
+            Kt[1, 2] -= j * height
+            depth = renderer.render([(model, R, t)], K=Kt, depth_only=True).depth
+            n = int(np.count_nonzero(depth > 0))
+            total += n
+            if i == 0 and j == 0:
+                inside = n
+    return total, inside
+
+
+class SceneComposer:
+    """Makes :class:`SceneSample` s for one renderer, model set, background source and config."""
+
+    def __init__(self, renderer, models, cfg: SynthConfig, backgrounds, distractors: list, symmetry_handlers=None):
+        self.renderer = renderer
+        self.models = list(models)
+        if not self.models:
+            raise ValueError("SceneComposer: no object models given")
+        self.cfg = cfg
+        self.K = cfg.camera_K()
+        self.W, self.H = cfg.width, cfg.height
+        self.backgrounds = backgrounds
+        self.distractors = distractors
+        self.geoms = [ModelGeometry(m) for m in self.models]
+        self.d_geoms = [ModelGeometry(d) for d in distractors]
+        self.ranges = cfg.view_ranges()
+        self.photometric: PhotometricConfig = cfg.photometric_config()
+        self.symmetry = symmetry_handlers or [None] * len(self.models)
+
+    # -- sampling ----------------------------------------------------------------------------------
+    def _choose_objects(self, rng) -> list[int]:
+        n_models = len(self.models)
+        if self.cfg.objects_per_image == "all":
+            return list(range(n_models))
+        lo, hi = self.cfg.objects_per_image
+        n = int(rng.integers(lo, hi + 1))
+        if n <= n_models:
+            return sorted(int(i) for i in rng.choice(n_models, size=n, replace=False))
+        return sorted(int(i) for i in rng.integers(0, n_models, size=n))
+
+    def _object_pose(self, rng, k):
+        R, t = sample_object_pose(rng, self.geoms[k], self.K, self.W, self.H, self.ranges, self.cfg.view_margin)
+        handler = self.symmetry[k]
+        if handler is not None:
+            R, t = handler.canonicalize(R, t)
+            R, t = np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+        return R, t
+
+    def _distractor_pose(self, rng, d_idx, target_box, target_z, target_radius):
+        """Pose of distractor ``d_idx``: in front of a target (to occlude part of it) or, one time in
+        four, anywhere in view as background clutter."""
+        g = self.d_geoms[d_idx]
+        from kpd6d.geometry import random_rotation
+
+        R = random_rotation(rng)
+        fx = self.K[0, 0]
+        if target_box is None or rng.random() < 0.25:
+            z = rng.uniform(*self.ranges.distance)
+            u, v = rng.uniform(0, self.W - 1), rng.uniform(0, self.H - 1)
+        else:
+            x, y, w, h = target_box
+            size_px = max(w, h) * rng.uniform(*self.cfg.distractor_size)
+            z = fx * 2 * g.radius / max(size_px, 1.0)
+            z = min(z, target_z - target_radius - g.radius)  # entirely in front of the target
+            z = max(z, 3 * self.renderer.znear + g.radius)
+            cx, cy = x + w / 2, y + h / 2
+            u = cx + rng.uniform(-1, 1) * (w / 2 + 0.3 * size_px)
+            v = cy + rng.uniform(-1, 1) * (h / 2 + 0.3 * size_px)
+        t = z * (np.linalg.inv(self.K) @ np.array([u, v, 1.0])) - R @ g.center
+        return R, t
+
+    # -- one image ---------------------------------------------------------------------------------
+    def _attempt(self, rng, chosen, lighting):
+        cfg = self.cfg
+        poses = [self._object_pose(rng, k) for k in chosen]
+        n_d = int(rng.integers(cfg.distractors[0], cfg.distractors[1] + 1)) if self.distractors else 0
+        d_items = []
+        for _ in range(n_d):
+            j = int(rng.integers(len(chosen)))
+            k = chosen[j]
+            R, t = poses[j]
+            box, _ = projected_box(self.geoms[k], self.K, R, t)
+            tz = float((R @ self.geoms[k].center + t)[2])
+            d = int(rng.integers(len(self.distractors)))
+            d_items.append((self.distractors[d], *self._distractor_pose(rng, d, box, tz, self.geoms[k].radius)))
+        items = [(self.models[k], R, t) for k, (R, t) in zip(chosen, poses)] + d_items
+        res = self.renderer.render(items, lighting=lighting, K=self.K)
+        instances = []
+        for i, k in enumerate(chosen):
+            model = self.models[k]
+            R, t = poses[i]
+            mask = res.masks_visib[i]
+            visib = int(np.count_nonzero(mask))
+            uv = project_points(self.geoms[k].hull, self.K, R, t)  # same extremes as all vertices
+            bbox_obj = bbox_obj_from_uv(uv)
+            x, y, w, h = bbox_obj
+            inside_image = x >= 0 and y >= 0 and x + w <= self.W - 1 and y + h <= self.H - 1
+            # could anything cover it? only if another rendered item shows inside its box
+            others = [res.masks_visib[j] for j in range(len(items)) if j != i]
+            x0, y0 = max(x, 0), max(y, 0)
+            x1, y1 = min(x + w, self.W - 1) + 1, min(y + h, self.H - 1) + 1
+            occluded = any(np.any(m[y0:y1, x0:x1]) for m in others) if x1 > x0 and y1 > y0 else False
+            if inside_image and not occluded:
+                px_all, px_valid = visib, visib
+            else:
+                px_all, px_valid = silhouette_counts(self.renderer, model, R, t, self.K, self.W, self.H, bbox_obj)
+            instances.append(SceneInstance(
+                obj_id=int(model.obj_id), R=R, t=t, mask_visib=mask, bbox_obj=bbox_obj,
+                bbox_visib=bbox_from_mask(mask), px_count_all=px_all, px_count_valid=px_valid,
+                px_count_visib=visib, visib_fract=float(visib / px_all) if px_all > 0 else 0.0,
+            ))
+        return res, instances
+
+    def _violation(self, instances) -> float:
+        lo, hi = self.cfg.visib_fract_range
+        return sum(max(0.0, lo - inst.visib_fract) + max(0.0, inst.visib_fract - hi) for inst in instances)
+
+    def compose(self, rng: np.random.Generator) -> SceneSample:
+        """One image and its ground truth, deterministic for the state of ``rng``."""
+        import cv2
+
+        from kpd6d.render import Lighting
+
+        cfg = self.cfg
+        chosen = self._choose_objects(rng)
+        lighting = Lighting.random(rng, specular_prob=cfg.specular_prob) if cfg.lighting == "random" else Lighting()
+        background = self.backgrounds.sample(rng, self.W, self.H)
+        best = None
+        attempts = 0
+        for _ in range(cfg.max_retries + 1):
+            attempts += 1
+            res, instances = self._attempt(rng, chosen, lighting)
+            v = self._violation(instances)
+            if best is None or v < best[0]:
+                best = (v, res, instances)
+            if v == 0:
+                break
+        _, res, instances = best
+        alpha = (res.depth > 0).astype(np.float32)
+        if cfg.feather_sigma > 0:
+            alpha = np.minimum(alpha, cv2.GaussianBlur(alpha, (0, 0), cfg.feather_sigma))
+        alpha = alpha[..., None]
+        rgb = (res.rgb.astype(np.float32) * alpha + background.astype(np.float32) * (1.0 - alpha))
+        rgb = np.clip(rgb + 0.5, 0, 255).astype(np.uint8)
+        rgb = apply_photometric(rgb, rng, self.photometric)
+        return SceneSample(rgb=rgb, depth=res.depth, K=self.K.copy(), instances=instances, attempts=attempts)

@@ -1,0 +1,71 @@
+"""Batch augmentation on the GPU (or CPU) with kornia.augmentation; keypoints follow any geometric transform.
+
+:class:`BatchAugment` applies, in order:
+
+1. geometric (optional): a small random affine (rotation / scale / translation) with
+   ``kornia.augmentation.RandomAffine(align_corners=True)``; the keypoints (crop px, pixel centres at
+   integer coordinates) are moved with the very same 3×3 matrix (``transform_matrix``);
+2. colour: hue and saturation (``ColorJiggle``) and exposure (brightness factor in
+   ``[1/exposure, exposure]``, the paper's ×1.5);
+3. Gaussian blur, Gaussian noise, random erasing (occlusion).
+
+Heatmap targets must be made *after* this step from the returned keypoints.
+"""
+
+from __future__ import annotations
+
+import torch
+from torch import nn
+
+from kpd6d.geometry import affine_apply
+
+__all__ = ["BatchAugment"]
+
+
+class BatchAugment(nn.Module):
+    def __init__(self, hue: float = 0.05, saturation: float = 1.5, exposure: float = 1.5, color_p: float = 1.0,
+                 blur_p: float = 0.2, blur_sigma: tuple[float, float] = (0.1, 1.5), noise_p: float = 0.2,
+                 noise_std: float = 0.02, erase_p: float = 0.3, erase_scale: tuple[float, float] = (0.02, 0.15),
+                 rotation_deg: float = 0.0, scale: tuple[float, float] | None = None,
+                 translate: float = 0.0, geometric_p: float = 0.5) -> None:
+        super().__init__()
+        import kornia.augmentation as KA
+
+        if exposure < 1 or saturation < 1:
+            raise ValueError(f"augment: exposure and saturation are factors >= 1, got {exposure}, {saturation}")
+        self.exposure = float(exposure)
+        self.color_p = float(color_p)
+        geometric = rotation_deg > 0 or translate > 0 or (scale is not None and tuple(scale) != (1.0, 1.0))
+        self.geometric = (
+            KA.RandomAffine(degrees=float(rotation_deg), translate=(float(translate), float(translate)) if translate else None,
+                            scale=tuple(scale) if scale is not None else None, align_corners=True, p=geometric_p)
+            if geometric else None
+        )
+        self.color = KA.ColorJiggle(saturation=(1 / saturation, saturation), hue=(-hue, hue), p=color_p) \
+            if (hue > 0 or saturation > 1) and color_p > 0 else None
+        self.blur = KA.RandomGaussianBlur((5, 5), tuple(blur_sigma), p=blur_p) if blur_p > 0 else None
+        self.noise = KA.RandomGaussianNoise(std=noise_std, p=noise_p) if noise_p > 0 and noise_std > 0 else None
+        self.erase = KA.RandomErasing(scale=tuple(erase_scale), p=erase_p) if erase_p > 0 else None
+
+    @torch.no_grad()
+    def forward(self, images: torch.Tensor, keypoints: torch.Tensor | None = None):
+        """images (B, 3, H, W) in [0, 1], keypoints (B, K, 2) crop px → (images, keypoints, M (B, 3, 3))."""
+        B = images.shape[0]
+        M = torch.eye(3, dtype=images.dtype, device=images.device).expand(B, 3, 3).clone()
+        x = images
+        if self.geometric is not None:
+            x = self.geometric(x)
+            M = self.geometric.transform_matrix.to(x.dtype)
+            if keypoints is not None:
+                keypoints = affine_apply(M[:, :2, :].to(keypoints.dtype), keypoints)
+        if self.color is not None:
+            x = self.color(x)
+        if self.exposure > 1 and self.color_p > 0:
+            lo, hi = torch.log(torch.tensor(1 / self.exposure)), torch.log(torch.tensor(self.exposure))
+            f = torch.exp(torch.empty(B, 1, 1, 1, device=x.device).uniform_(float(lo), float(hi)))
+            apply = (torch.rand(B, 1, 1, 1, device=x.device) < self.color_p).to(x.dtype)
+            x = x * (1 + apply * (f.to(x.dtype) - 1))
+        for aug in (self.blur, self.noise, self.erase):
+            if aug is not None:
+                x = aug(x)
+        return x.clamp(0.0, 1.0), keypoints, M

@@ -1,0 +1,118 @@
+"""Feature backbones (``BACKBONES``): timm ``features_only`` models, built with ``pretrained=False``.
+
+``BACKBONES.build("resnet101", pretrained="/path/weights.pth")`` loads a *local* weights file (a
+timm / torchvision-style state dict of the full classification model, or of the features model;
+``{"state_dict": ...}`` / ``{"model": ...}`` wrappers are unwrapped). Nothing is ever downloaded.
+
+A backbone maps images (B, 3, H, W) (already normalised) to a list of feature maps, one per stage;
+``channels`` and ``reductions`` (strides) describe them.
+"""
+
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import torch
+from torch import nn
+
+from kpd6d.registry import BACKBONES
+
+__all__ = ["TIMM_BACKBONES", "Backbone", "BackboneWeightsError", "timm_backbone"]
+
+#: registry name -> timm model name
+TIMM_BACKBONES = {
+    "resnet18": "resnet18",
+    "resnet34": "resnet34",
+    "resnet50": "resnet50",
+    "resnet101": "resnet101",
+    "hrnet_w18": "hrnet_w18",
+    "hrnet_w32": "hrnet_w32",
+    "convnext_tiny": "convnext_tiny",
+}
+
+# classifier parameters a full-model checkpoint may carry that a features_only model lacks
+_CLASSIFIER_PREFIXES = ("fc.", "head.", "classifier.", "final_layer.", "incre_modules_cls.", "downsamp_modules.",
+                        "head_drop.", "norm_pre.")
+
+
+class BackboneWeightsError(ValueError):
+    """A ``pretrained`` weights file that is missing or does not fit the backbone."""
+
+
+class Backbone(nn.Module):
+    """A timm ``features_only`` model; ``forward`` returns all its stage features (stride 2/4 … 32)."""
+
+    def __init__(self, model_name: str, pretrained: str | os.PathLike | None = None, in_chans: int = 3) -> None:
+        super().__init__()
+        import timm
+
+        self.model_name = model_name
+        self.body = timm.create_model(model_name, pretrained=False, features_only=True, in_chans=in_chans)
+        self.channels: list[int] = list(self.body.feature_info.channels())
+        self.reductions: list[int] = list(self.body.feature_info.reduction())
+        if pretrained:
+            load_backbone_weights(self.body, pretrained, model_name)
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        return list(self.body(x))
+
+
+def load_backbone_weights(body: nn.Module, path: str | os.PathLike, model_name: str) -> None:
+    """Load a local state dict into a features_only model; a clear error when missing / mismatched."""
+    p = Path(path).expanduser()
+    if not p.is_file():
+        raise BackboneWeightsError(
+            f"backbone {model_name!r}: pretrained weights file {str(p)!r} does not exist "
+            "(pretrained must be a local file; kpd6d never downloads weights)"
+        )
+    try:
+        sd = torch.load(p, map_location="cpu", weights_only=True)
+    except Exception as exc:
+        raise BackboneWeightsError(f"backbone {model_name!r}: cannot read weights file {str(p)!r}: {exc}") from exc
+    for key in ("state_dict", "model"):
+        if isinstance(sd, dict) and key in sd and isinstance(sd[key], dict):
+            sd = sd[key]
+    if not isinstance(sd, dict):
+        raise BackboneWeightsError(f"backbone {model_name!r}: {str(p)!r} holds a {type(sd).__name__}, not a state dict")
+    own = body.state_dict()
+    sd = {k.removeprefix("module.").removeprefix("body."): v for k, v in sd.items()}
+    unexpected = [k for k in sd if k not in own and not k.startswith(_CLASSIFIER_PREFIXES)]
+    missing = [k for k in own if k not in sd]
+    bad_shape = [f"{k} {tuple(sd[k].shape)} vs {tuple(own[k].shape)}" for k in own
+                 if k in sd and tuple(sd[k].shape) != tuple(own[k].shape)]
+    if missing or unexpected or bad_shape:
+        def few(xs):
+            return ", ".join(xs[:5]) + (f" (+{len(xs) - 5} more)" if len(xs) > 5 else "")
+        parts = []
+        if missing:
+            parts.append(f"missing keys: {few(missing)}")
+        if unexpected:
+            parts.append(f"unexpected keys: {few(unexpected)}")
+        if bad_shape:
+            parts.append(f"shape mismatches: {few(bad_shape)}")
+        raise BackboneWeightsError(
+            f"backbone {model_name!r}: weights file {str(p)!r} does not match the model; " + "; ".join(parts)
+        )
+    body.load_state_dict({k: sd[k] for k in own}, strict=True)
+
+
+def timm_backbone(model_name: str, pretrained: str | os.PathLike | None = None, in_chans: int = 3) -> Backbone:
+    """Any timm model with ``features_only`` support (``BACKBONES.build("timm", model_name=...)``)."""
+    return Backbone(model_name, pretrained=pretrained, in_chans=in_chans)
+
+
+BACKBONES.add("timm", timm_backbone)
+
+
+def _make(timm_name: str):
+    def factory(pretrained: str | os.PathLike | None = None, in_chans: int = 3) -> Backbone:
+        return Backbone(timm_name, pretrained=pretrained, in_chans=in_chans)
+
+    factory.__name__ = timm_name
+    factory.__doc__ = f"timm {timm_name} (features_only, pretrained=False; ``pretrained`` = local weights file)."
+    return factory
+
+
+for _name, _timm in TIMM_BACKBONES.items():
+    BACKBONES.add(_name, _make(_timm))

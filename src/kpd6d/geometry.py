@@ -23,6 +23,7 @@ __all__ = [
     "LINEMOD_IMAGE_SIZE",
     "LINEMOD_K",
     "affine_apply",
+    "backproject",
     "bbox_from_points",
     "box_to_crop_affine",
     "compose_poses",
@@ -123,13 +124,31 @@ def project_points(points, K, R=None, t=None, *, return_depth: bool = False):
     camera plane (z <= 0) give non-finite or meaningless pixels; ``return_depth=True`` also returns
     z (..., N) so callers can test for that.
     """
+    if (R is None) != (t is None):
+        raise ValueError(f"project_points: {'R given without t' if t is None else 't given without R'}")
     pc = transform_points(points, R, t) if R is not None else points
-    if t is None and R is not None:
-        raise ValueError("project_points: R given without t")
     uvw = pc @ _swap(K)
     z = uvw[..., 2]
     uv = uvw[..., :2] / z[..., None]
     return (uv, pc[..., 2]) if return_depth else uv
+
+
+def backproject(uv, depth, K):
+    """Inverse of :func:`project_points` in the camera frame: pixels (..., N, 2) at depths z (..., N)
+    (mm along the optical axis, as rendered depth maps hold) -> camera-frame points (..., N, 3).
+
+    Map them to the model frame with ``transform_points(pc, *invert_pose(R, t))``.
+    """
+    K = K if _is_torch(uv) or not isinstance(K, np.ndarray) else np.asarray(K, dtype=np.float64)
+    fx, fy, cx, cy = K[..., 0, 0], K[..., 1, 1], K[..., 0, 2], K[..., 1, 2]
+    fx, fy, cx, cy = (v[..., None] if getattr(v, "ndim", 0) else v for v in (fx, fy, cx, cy))
+    x = (uv[..., 0] - cx) / fx * depth
+    y = (uv[..., 1] - cy) / fy * depth
+    if _is_torch(uv):
+        import torch
+
+        return torch.stack([x, y, depth], dim=-1)
+    return np.stack([x, y, np.broadcast_to(depth, x.shape)], axis=-1)
 
 
 def bbox_from_points(uv):

@@ -119,13 +119,14 @@ class Renderer:
         key = (id(mesh), round(specular, 2))
         pm = self._cache.get(key)
         if pm is None:
-            material = None
+            # keep pyrender's own material (it carries the vertex colours / texture; passing a
+            # material to from_trimesh would drop them) and only change its shininess
+            pm = self._pyrender.Mesh.from_trimesh(mesh, smooth=False)
             if specular > 0:
-                material = self._pyrender.MetallicRoughnessMaterial(
-                    metallicFactor=0.2 * specular, roughnessFactor=1.0 - 0.6 * specular,
-                    baseColorFactor=[1.0, 1.0, 1.0, 1.0],
-                )
-            pm = self._pyrender.Mesh.from_trimesh(mesh, material=material, smooth=False)
+                for prim in pm.primitives:
+                    mat = prim.material
+                    if hasattr(mat, "roughnessFactor"):
+                        mat.roughnessFactor = max(0.05, 0.8 - specular)  # pyrender's default is 0.8
             if len(self._cache) > 256:
                 self._cache.clear()
             self._cache[key] = (pm, mesh)  # keep mesh alive so id() stays unique

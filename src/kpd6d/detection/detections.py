@@ -1,0 +1,222 @@
+"""What every detector returns (:class:`Detections`), the common :class:`Detector` base with its
+``predict`` API, input validation and the vectorised post-processing (threshold, one per object,
+max detections).
+
+Boxes are BOP ``(x, y, w, h)`` in pixels of the image passed to ``predict``; ``obj_ids`` are the
+BOP object ids (not class indices); ``scores`` are sorted in descending order.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+from dataclasses import dataclass
+from typing import Any
+
+import torch
+from torch import nn
+
+__all__ = [
+    "DetectionInputError",
+    "Detections",
+    "Detector",
+    "check_images",
+    "keep_best_per_class",
+    "xywh_to_xyxy",
+    "xyxy_to_xywh",
+]
+
+
+class DetectionInputError(ValueError):
+    """Images, targets or a checkpoint that a detector cannot use; the message says what is wrong."""
+
+
+@dataclass
+class Detections:
+    """Detections of one image: ``boxes`` (N, 4) xywh px, ``obj_ids`` (N,) long, ``scores`` (N,) float,
+    sorted by descending score; all on the images' device."""
+
+    boxes: torch.Tensor
+    obj_ids: torch.Tensor
+    scores: torch.Tensor
+
+    def __len__(self) -> int:
+        return int(self.scores.shape[0])
+
+    def to(self, device: Any) -> Detections:
+        return Detections(self.boxes.to(device), self.obj_ids.to(device), self.scores.to(device))
+
+    @classmethod
+    def empty(cls, device: Any = "cpu") -> Detections:
+        return cls(
+            torch.zeros((0, 4), dtype=torch.float32, device=device),
+            torch.zeros((0,), dtype=torch.long, device=device),
+            torch.zeros((0,), dtype=torch.float32, device=device),
+        )
+
+    def best_per_object(self) -> dict[int, torch.Tensor]:
+        """``{obj_id: box (4,)}`` of the highest-scoring box of each object id."""
+        out: dict[int, torch.Tensor] = {}
+        for box, oid in zip(self.boxes, self.obj_ids.tolist()):
+            out.setdefault(int(oid), box)
+        return out
+
+
+def xywh_to_xyxy(b: torch.Tensor) -> torch.Tensor:
+    return torch.cat([b[..., :2], b[..., :2] + b[..., 2:4]], dim=-1)
+
+
+def xyxy_to_xywh(b: torch.Tensor) -> torch.Tensor:
+    return torch.cat([b[..., :2], b[..., 2:4] - b[..., :2]], dim=-1)
+
+
+def check_images(images: Any, *, what: str = "images") -> torch.Tensor:
+    """Validate a (B, 3, H, W) float batch in [0, 1] and return it; raise a clear error otherwise.
+
+    uint8 (or other integer) images are rejected rather than silently rescaled: the contract is
+    float in [0, 1], and guessing the scale hides bugs. Convert with ``images.float() / 255``.
+    """
+    if not isinstance(images, torch.Tensor):
+        raise DetectionInputError(
+            f"{what} must be a torch.Tensor (B, 3, H, W) float in [0, 1], got {type(images).__name__}"
+        )
+    if images.ndim != 4:
+        hint = " (a single image? use images.unsqueeze(0))" if images.ndim == 3 else ""
+        raise DetectionInputError(f"{what} must have shape (B, 3, H, W), got {tuple(images.shape)}{hint}")
+    if images.shape[1] != 3:
+        hint = " (channels-last? use images.permute(0, 3, 1, 2))" if images.shape[-1] == 3 else ""
+        raise DetectionInputError(
+            f"{what} must have 3 (RGB) channels in dim 1, got {images.shape[1]} "
+            f"(shape {tuple(images.shape)}){hint}"
+        )
+    if images.shape[2] == 0 or images.shape[3] == 0:
+        raise DetectionInputError(f"{what} is empty: height x width = {images.shape[2]} x {images.shape[3]}")
+    if not images.is_floating_point():
+        raise DetectionInputError(
+            f"{what} must be float in [0, 1], got dtype {images.dtype}; "
+            "convert uint8 images with images.float() / 255"
+        )
+    if images.numel() and images.shape[0]:
+        lo, hi = float(images.amin()), float(images.amax())
+        if not (lo >= -1e-3 and hi <= 1.0 + 1e-3):
+            raise DetectionInputError(
+                f"{what} must be float in [0, 1], got values in [{lo:.3g}, {hi:.3g}]"
+                + ("; 0..255 images? divide by 255" if hi > 1.5 else "")
+            )
+    return images
+
+
+def keep_best_per_class(labels: torch.Tensor, valid: torch.Tensor, num_classes: int) -> torch.Tensor:
+    """Mask (B, K) keeping only the first valid entry of each class per row (rows sorted by score).
+
+    Vectorised over the batch: for every (row, class) the smallest valid position wins.
+    """
+    B, K = labels.shape
+    pos = torch.arange(K, device=labels.device).expand(B, K)
+    big = torch.full((B, num_classes), K, dtype=torch.long, device=labels.device)
+    cand = torch.where(valid, pos, torch.full_like(pos, K))
+    first = big.scatter_reduce(1, labels.clamp(0, num_classes - 1), cand, reduce="amin")
+    return valid & (first.gather(1, labels.clamp(0, num_classes - 1)) == pos)
+
+
+class Detector(nn.Module):
+    """Base of the detectors: validation, resizing to ``input_size`` and post-processing.
+
+    Subclasses implement :meth:`raw_predict` (network-size images -> padded, score-sorted
+    ``boxes (B, K, 4)`` xywh in network px, ``labels (B, K)`` class indices, ``scores (B, K)``,
+    entries with score < 0 are padding) and, if trainable, :meth:`training_losses`.
+    Class index ``i`` is object id ``obj_ids[i]``.
+    """
+
+    trainable = True
+
+    def __init__(self, obj_ids: Sequence[int] | None, input_size: Sequence[int] | None = None,
+                 score_threshold: float = 0.1, max_detections: int = 100, one_per_object: bool = False,
+                 requires_obj_ids: bool = True) -> None:
+        super().__init__()
+        if obj_ids is None:
+            if requires_obj_ids:
+                raise DetectionInputError(
+                    f"{type(self).__name__}: obj_ids is required (the object ids this detector's classes "
+                    "stand for, e.g. obj_ids=[1, 2, 3])"
+                )
+            self.obj_ids: list[int] | None = None
+        else:
+            ids = [int(i) for i in obj_ids]
+            if not ids or len(set(ids)) != len(ids) or min(ids) < 0:
+                raise DetectionInputError(
+                    f"{type(self).__name__}: obj_ids must be distinct non-negative ids, got {list(obj_ids)}"
+                )
+            self.obj_ids = ids
+        if input_size is not None:
+            if len(input_size) != 2 or min(int(s) for s in input_size) <= 0:
+                raise DetectionInputError(f"input_size must be (width, height) > 0, got {input_size!r}")
+            input_size = (int(input_size[0]), int(input_size[1]))
+        self.input_size: tuple[int, int] | None = input_size
+        if not 0.0 <= float(score_threshold) <= 1.0:
+            raise DetectionInputError(f"score_threshold must be in [0, 1], got {score_threshold}")
+        if int(max_detections) < 1:
+            raise DetectionInputError(f"max_detections must be >= 1, got {max_detections}")
+        self.score_threshold = float(score_threshold)
+        self.max_detections = int(max_detections)
+        self.one_per_object = bool(one_per_object)
+        self.box_stats: dict | None = None  # validation box-error statistics, kept with the checkpoint
+        self.register_buffer("_obj_id_table", torch.tensor(self.obj_ids or [], dtype=torch.long),
+                             persistent=False)
+
+    @property
+    def num_classes(self) -> int:
+        return len(self.obj_ids or [])
+
+    # -- to implement -------------------------------------------------------------------------
+    def raw_predict(self, images: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+        raise NotImplementedError
+
+    def training_losses(self, images: torch.Tensor, targets: list[dict]) -> dict[str, torch.Tensor]:
+        raise NotImplementedError(f"{type(self).__name__} is not trainable")
+
+    # -- inference ----------------------------------------------------------------------------
+    def network_images(self, images: torch.Tensor) -> tuple[torch.Tensor, float, float]:
+        """Resize to ``input_size``; returns (images, sx, sy) with input px = network px * (sx, sy)."""
+        H, W = images.shape[-2:]
+        if self.input_size is None or (W, H) == self.input_size:
+            return images, 1.0, 1.0
+        w, h = self.input_size
+        x = nn.functional.interpolate(images, size=(h, w), mode="bilinear", align_corners=False,
+                                      antialias=True)
+        return x, W / w, H / h
+
+    @torch.no_grad()
+    def predict(self, images: torch.Tensor, targets: list[dict] | None = None) -> list[Detections]:
+        """Detect objects in ``images`` (B, 3, H, W) float [0, 1]; one :class:`Detections` per image."""
+        images = check_images(images)
+        if images.shape[0] == 0:
+            return []
+        was_training = self.training
+        self.eval()
+        try:
+            x, sx, sy = self.network_images(images)
+            boxes, labels, scores = self.raw_predict(x)
+        finally:
+            self.train(was_training)
+        scale = torch.tensor([sx, sy, sx, sy], dtype=boxes.dtype, device=boxes.device)
+        return self.postprocess(boxes * scale, labels, scores)
+
+    def postprocess(self, boxes: torch.Tensor, labels: torch.Tensor, scores: torch.Tensor) -> list[Detections]:
+        """Padded (B, K, ...) score-sorted outputs -> list of :class:`Detections` (vectorised masks)."""
+        valid = scores >= max(self.score_threshold, 0.0)
+        if self.one_per_object and labels.shape[1]:
+            valid = keep_best_per_class(labels, valid, max(self.num_classes, int(labels.max()) + 1))
+        # stable order: valid entries first (already score-sorted), then cap at max_detections
+        rank = torch.cumsum(valid.long(), dim=1)
+        valid = valid & (rank <= self.max_detections)
+        ids = self._obj_id_table[labels.clamp(min=0)] if self.num_classes else labels
+        out = []
+        for b in range(boxes.shape[0]):  # split only; all decisions above are batched
+            m = valid[b]
+            out.append(Detections(boxes[b][m].float(), ids[b][m].long(), scores[b][m].float()))
+        return out
+
+    # -- checkpoint spec ----------------------------------------------------------------------
+    def spec(self) -> dict:
+        """Constructor parameters to rebuild this detector (see :func:`kpd6d.detection.load_detector`)."""
+        return dict(getattr(self, "_spec", {}))

@@ -1,0 +1,162 @@
+"""The ``DETECTORS`` registry entries and the detector checkpoint format.
+
+Entries: ``centernet`` (default of this project), ``fcos``, ``faster_rcnn``, ``oracle``.
+``save_detector(detector, path)`` writes a self-contained file (entry name, constructor parameters,
+object ids, input size, box-error statistics, weights); ``load_detector(path)`` rebuilds a ready
+detector from it, or from a ``DetectorModule`` Lightning checkpoint, without any training config.
+"""
+
+from __future__ import annotations
+
+import functools
+import os
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+from typing import Any
+
+import torch
+
+from kpd6d.detection.centernet import CenterNet
+from kpd6d.detection.detections import DetectionInputError, Detector
+from kpd6d.detection.oracle import OracleDetector
+from kpd6d.detection.torchvision_detectors import TorchvisionDetector
+from kpd6d.registry import DETECTORS
+
+__all__ = ["CHECKPOINT_KEY", "build_detector", "load_detector", "save_detector"]
+
+CHECKPOINT_KEY = "kpd6d_detector"
+FORMAT_VERSION = 1
+
+
+def _register(name: str, factory):
+    """Register ``factory`` under ``name``; the built detector remembers (name, params) for saving."""
+
+    @functools.wraps(factory)
+    def build(**params: Any) -> Detector:
+        det = factory(**params)
+        det._spec = {"name": name, "params": _plain(params)}
+        return det
+
+    DETECTORS.add(name, build)
+    return build
+
+
+def _plain(v: Any) -> Any:
+    if isinstance(v, dict):
+        return {str(k): _plain(x) for k, x in v.items()}
+    if isinstance(v, (list, tuple)):
+        return [_plain(x) for x in v]
+    return v
+
+
+_register("centernet", CenterNet)
+_register("oracle", OracleDetector)
+
+
+def fcos(obj_ids: Sequence[int] | None = None, backbone: str = "resnet18", input_size: Sequence[int] | None = (320, 240),
+         score_threshold: float = 0.1, max_detections: int = 100, one_per_object: bool = False,
+         backbone_weights_path: str | None = None, weights_path: str | None = None,
+         nms_threshold: float = 0.6) -> TorchvisionDetector:
+    """torchvision FCOS (anchor-free, FPN strides 8..128)."""
+    return TorchvisionDetector("fcos", obj_ids, backbone, input_size, score_threshold, max_detections, one_per_object,
+                               backbone_weights_path, weights_path, nms_threshold)
+
+
+def faster_rcnn(obj_ids: Sequence[int] | None = None, backbone: str = "resnet18",
+                input_size: Sequence[int] | None = (320, 240), score_threshold: float = 0.1,
+                max_detections: int = 100, one_per_object: bool = False, backbone_weights_path: str | None = None,
+                weights_path: str | None = None, nms_threshold: float = 0.5) -> TorchvisionDetector:
+    """torchvision Faster R-CNN (two-stage, FPN strides 4..64)."""
+    return TorchvisionDetector("faster_rcnn", obj_ids, backbone, input_size, score_threshold, max_detections,
+                               one_per_object, backbone_weights_path, weights_path, nms_threshold)
+
+
+_register("fcos", fcos)
+_register("faster_rcnn", faster_rcnn)
+
+
+def build_detector(name: str, **params: Any) -> Detector:
+    return DETECTORS.build(name, **params)
+
+
+def detector_record(detector: Detector) -> dict:
+    """The checkpoint metadata of ``detector`` (everything except its weights)."""
+    spec = detector.spec()
+    if not spec:
+        raise DetectionInputError(f"{type(detector).__name__} was not built through DETECTORS; cannot save it")
+    return {
+        "format_version": FORMAT_VERSION,
+        "name": spec["name"],
+        "params": spec["params"],
+        "obj_ids": list(detector.obj_ids or []),
+        "class_to_obj_id": {i: oid for i, oid in enumerate(detector.obj_ids or [])},
+        "input_size": list(detector.input_size) if detector.input_size else None,
+        "box_stats": detector.box_stats,
+    }
+
+
+def save_detector(detector: Detector, path: str | os.PathLike, extra: dict | None = None) -> Path:
+    """Write ``detector`` to ``path`` atomically (temp file + rename)."""
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    payload = {CHECKPOINT_KEY: detector_record(detector), "state_dict": detector.state_dict(), **(extra or {})}
+    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=path.name, suffix=".tmp")
+    os.close(fd)
+    try:
+        torch.save(payload, tmp)
+        os.replace(tmp, path)
+    finally:
+        if os.path.exists(tmp):
+            os.unlink(tmp)
+    return path
+
+
+def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None, map_location: Any = "cpu",
+                  **overrides: Any) -> Detector:
+    """Rebuild a ready (eval-mode) detector from ``save_detector``'s file or a Lightning checkpoint.
+
+    ``obj_ids``: the objects you need; a checkpoint trained for other objects raises a clear error.
+    ``overrides`` replace inference settings (``score_threshold``, ``max_detections``,
+    ``one_per_object``).
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"detector checkpoint {str(path)!r} does not exist")
+    try:
+        payload = torch.load(path, map_location=map_location, weights_only=False)
+    except Exception as exc:
+        raise DetectionInputError(f"cannot read detector checkpoint {str(path)!r}: {exc}") from exc
+    if not isinstance(payload, dict) or CHECKPOINT_KEY not in payload:
+        keys = sorted(payload) if isinstance(payload, dict) else type(payload).__name__
+        raise DetectionInputError(f"{str(path)!r} is not a kpd6d detector checkpoint (no {CHECKPOINT_KEY!r} "
+                                  f"entry; found {keys})")
+    rec = payload[CHECKPOINT_KEY]
+    have = [int(i) for i in rec.get("obj_ids") or []]
+    if obj_ids is not None and have:
+        missing = sorted(set(int(i) for i in obj_ids) - set(have))
+        if missing:
+            raise DetectionInputError(f"detector checkpoint {str(path)!r} was trained for obj_ids {have}; "
+                                      f"it cannot detect requested obj_ids {missing}")
+    allowed = {"score_threshold", "max_detections", "one_per_object"}
+    bad = sorted(set(overrides) - allowed)
+    if bad:
+        raise DetectionInputError(f"load_detector: cannot override {bad}; allowed: {sorted(allowed)}")
+    params = dict(rec["params"])
+    for k in ("backbone_weights_path", "weights_path"):  # the weights come from the checkpoint
+        params.pop(k, None)
+    params.update(overrides)
+    det = build_detector(rec["name"], **params)
+    state = payload["state_dict"]
+    prefix = payload.get("state_dict_prefix", "")
+    if prefix:
+        state = {k[len(prefix):]: v for k, v in state.items() if k.startswith(prefix)}
+    try:
+        det.load_state_dict(state)
+    except RuntimeError as exc:
+        raise DetectionInputError(f"weights in {str(path)!r} do not fit a {rec['name']} detector built from its "
+                                  f"recorded parameters: {exc}") from exc
+    det._spec = {"name": rec["name"], "params": _plain(dict(rec["params"], **overrides))}
+    det.box_stats = rec.get("box_stats")
+    det.to(map_location if isinstance(map_location, (str, torch.device)) else "cpu")
+    return det.eval()

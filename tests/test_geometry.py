@@ -40,7 +40,7 @@ def test_project_points_matches_cv2_projectPoints(rng):
         X = rng.uniform(-100, 100, (40, 3))
         ref, _ = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, K, None)
         np.testing.assert_allclose(G.project_points(X, K, R, t), ref.reshape(-1, 2), rtol=0, atol=1e-9)
-        uv, z = G.project_points(X, K, R, t, return_depth=True)
+        _uv, z = G.project_points(X, K, R, t, return_depth=True)
         np.testing.assert_allclose(z, (X @ R.T + t)[:, 2], atol=1e-9)
 
 
@@ -148,7 +148,7 @@ def test_look_at_pose_puts_target_on_optical_axis_and_up_upwards():
     pc = R @ target + t
     np.testing.assert_allclose(pc[:2], 0.0, atol=1e-9)
     assert pc[2] == pytest.approx(np.linalg.norm(target - eye))
-    above = R @ (target + [0, 0, 10.0]) + t
+    above = R @ (target + np.array([0.0, 0.0, 10.0])) + t
     assert above[1] < 0  # world up is image up (-y)
     # looking straight down the up axis still gives a rotation
     R2, _ = G.look_at_pose([0, 0, 500.0], up=(0, 0, 1))

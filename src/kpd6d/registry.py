@@ -54,6 +54,7 @@ class Registry:
         self.kind = kind
         self._modules = modules
         self._factories: dict[str, Callable[..., Any]] = {}
+        self._overrides: set[str] = set()  # names registered with override=True (e.g. by plugins)
         self._loaded = False
 
     # -- registration -------------------------------------------------------------------------
@@ -75,7 +76,14 @@ class Registry:
             raise ValueError(f"{self.kind} registry: entry name must be a non-empty string, got {name!r}")
         if not callable(factory):
             raise TypeError(f"{self.kind} registry: factory for {name!r} is not callable: {factory!r}")
-        if name in self._factories and not override and self._factories[name] is not factory:
+        if not override and name in self._overrides:
+            # an override=True entry (typically a plugin's) wins over a plain registration of the
+            # same name, whichever comes first: plugins may load before a registry's built-ins
+            return
+        if override:
+            self._overrides.add(name)
+        if (name in self._factories and not override and self._factories[name] is not factory
+                and _qualname(self._factories[name]) != _qualname(factory)):  # same qualname: a re-executed module
             raise ValueError(
                 f"{self.kind} registry: {name!r} is already registered by "
                 f"{_qualname(self._factories[name])}; pass override=True to replace it"
@@ -86,10 +94,15 @@ class Registry:
     def _ensure_loaded(self) -> None:
         if self._loaded:
             return
-        self._loaded = True
-        for mod in self._modules:
-            importlib.import_module(mod)
-        load_plugins()
+        self._loaded = True  # set first: the modules below query this registry while registering
+        try:
+            for mod in self._modules:
+                importlib.import_module(mod)
+            load_plugins()
+        except BaseException:
+            # keep the failure visible on the next query too (not a silently empty registry)
+            self._loaded = False
+            raise
 
     def names(self) -> list[str]:
         self._ensure_loaded()
@@ -167,10 +180,11 @@ def load_plugins() -> list[str]:
     for ep in metadata.entry_points(group=PLUGIN_GROUP):
         try:
             obj = ep.load()
-        except Exception as exc:  # a broken plugin must not hide the built-ins; say which one
+            if callable(obj) and not inspect.ismodule(obj):
+                obj()
+        except Exception as exc:  # say which plugin broke; the next registry query raises again
+            _plugins_loaded = False
             raise ImportError(f"kpd6d plugin entry point {ep.name!r} ({ep.value}) failed to load: {exc}") from exc
-        if callable(obj) and not inspect.ismodule(obj):
-            obj()
         loaded.append(ep.name)
     return loaded
 

@@ -1,0 +1,158 @@
+"""Evaluation reports: ``report.md`` (paper-style per-object table), accuracy-threshold plots and
+3D-box overlays (ground truth green, prediction blue), from a ``metrics.json`` dict written by
+:func:`kpd6d.evaluation.evaluate.evaluate`."""
+
+from __future__ import annotations
+
+import os
+import tempfile
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from kpd6d.geometry import project_points
+
+__all__ = ["GT_COLOR", "PRED_COLOR", "draw_box_3d", "draw_overlay", "plot_curves", "write_report_md"]
+
+GT_COLOR = (0, 200, 0)  # RGB green
+PRED_COLOR = (30, 90, 255)  # RGB blue
+
+# the 12 edges of a box whose 8 corners are ordered x fastest (ObjectModel.bbox_corners)
+_EDGES = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
+
+
+def _atomic_write_text(path: Path, text: str) -> None:
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    with os.fdopen(fd, "w") as f:
+        f.write(text)
+    os.replace(tmp, path)
+
+
+def atomic_write_png(path: Path, rgb: np.ndarray) -> None:
+    """Write an RGB uint8 image as PNG atomically."""
+    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
+    if not ok:
+        raise OSError(f"{path}: PNG encoding failed")
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    with os.fdopen(fd, "wb") as f:
+        f.write(buf.tobytes())
+    os.replace(tmp, path)
+
+
+# ---------------------------------------------------------------------------------------------
+# overlays
+# ---------------------------------------------------------------------------------------------
+def draw_box_3d(image: np.ndarray, corners_3d: np.ndarray, K, R, t, color, thickness: int = 2) -> np.ndarray:
+    """Draw the projected 3D box (8 corners, x fastest) of a model at pose (R, t) in place; returns the image."""
+    R, t = np.asarray(R, float), np.asarray(t, float)
+    if not (np.isfinite(R).all() and np.isfinite(t).all()):
+        return image
+    uv, z = project_points(np.asarray(corners_3d, float), np.asarray(K, float), R, t, return_depth=True)
+    if (z <= 0).any():
+        return image
+    pts = np.round(uv).astype(np.int64)
+    for a, b in _EDGES:
+        cv2.line(image, tuple(int(v) for v in pts[a]), tuple(int(v) for v in pts[b]), color, thickness, cv2.LINE_AA)
+    return image
+
+
+def draw_overlay(image: np.ndarray, K, corners: dict[int, np.ndarray], gt: list[tuple[int, np.ndarray, np.ndarray]],
+                 pred: list[tuple[int, np.ndarray, np.ndarray]]) -> np.ndarray:
+    """A copy of ``image`` with GT boxes (green) and predicted boxes (blue); ``gt``/``pred`` are (obj_id, R, t)."""
+    out = np.ascontiguousarray(image.copy())
+    for oid, R, t in gt:
+        if oid in corners:
+            draw_box_3d(out, corners[oid], K, R, t, GT_COLOR)
+    for oid, R, t in pred:
+        if oid in corners:
+            draw_box_3d(out, corners[oid], K, R, t, PRED_COLOR)
+    return out
+
+
+# ---------------------------------------------------------------------------------------------
+# plots
+# ---------------------------------------------------------------------------------------------
+def plot_curves(metrics: dict, out_dir: str | os.PathLike) -> list[Path]:
+    """``accuracy_vs_px.png`` (2D projection) and ``accuracy_vs_add.png`` (ADD(-S)), per object + mean."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    out_dir = Path(out_dir)
+    paths = []
+    curves = metrics["curves"]
+    for key, xlabel, fname, title in (
+        ("proj2d", "pixel threshold", "accuracy_vs_px.png", "2D projection accuracy"),
+        ("add_s", "ADD(-S) threshold (fraction of diameter)", "accuracy_vs_add.png", "ADD(-S) accuracy"),
+    ):
+        th = np.asarray(curves[f"{key}_thresholds"])
+        fig, ax = plt.subplots(figsize=(6, 4.5), dpi=100)
+        for oid, obj in sorted(metrics["per_object"].items(), key=lambda kv: int(kv[0])):
+            ax.plot(th, 100 * np.asarray(obj["curves"][key]), lw=1.2, label=f"{obj.get('name') or 'obj'} ({oid})")
+        ax.plot(th, 100 * np.asarray(metrics["mean"]["curves"][key]), "k--", lw=2.2, label="mean")
+        ax.set_xlabel(xlabel)
+        ax.set_ylabel("accuracy (%)")
+        ax.set_ylim(0, 100)
+        ax.set_xlim(th[0], th[-1])
+        ax.grid(alpha=0.3)
+        ax.set_title(title)
+        ax.legend(fontsize=7, ncol=2, loc="lower right")
+        fig.tight_layout()
+        path = out_dir / fname
+        fd, tmp = tempfile.mkstemp(prefix=f".{fname}.", suffix=".png", dir=out_dir)
+        os.close(fd)
+        fig.savefig(tmp)
+        plt.close(fig)
+        os.replace(tmp, path)
+        paths.append(path)
+    return paths
+
+
+# ---------------------------------------------------------------------------------------------
+# report.md
+# ---------------------------------------------------------------------------------------------
+def _pct(v) -> str:
+    return "–" if v is None else f"{100 * v:.1f}"
+
+
+def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] | None = None) -> Path:
+    """Paper-style per-object table (ADD(-S) 0.1d, 2D proj. 5 px, AR_MSSD, AR_MSPD) and the run's settings."""
+    path = Path(path)
+    lines = ["# kpd6d evaluation", ""]
+    info = metrics.get("run", {})
+    for k in ("dataset", "split", "targets", "detector", "kpd", "pnp", "top_l", "frames", "device"):
+        if k in info:
+            lines.append(f"- {k}: `{info[k]}`")
+    lines += ["", "| object | id | n | ADD(-S) 0.1d (%) | 2D proj. 5 px (%) | AUC ADD(-S) ≤0.5d (%) | AR_MSSD (%) | AR_MSPD (%) |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for oid, o in sorted(metrics["per_object"].items(), key=lambda kv: int(kv[0])):
+        sym = " *" if o.get("symmetric") else ""
+        lines.append(f"| {o.get('name') or '-'}{sym} | {oid} | {o['n']} | {_pct(o['add_s_01d'])} | {_pct(o['proj2d_5px'])} | "
+                     f"{_pct(o['auc_add_s'])} | {_pct(o.get('ar_mssd'))} | {_pct(o.get('ar_mspd'))} |")
+    m = metrics["mean"]
+    lines.append(f"| **mean** | | {m['n']} | **{_pct(m['add_s_01d'])}** | **{_pct(m['proj2d_5px'])}** | "
+                 f"{_pct(m['auc_add_s'])} | {_pct(m.get('ar_mssd'))} | {_pct(m.get('ar_mspd'))} |")
+    lines += ["", "`*` symmetric object: ADD-S instead of ADD. Mean = mean over objects. Objects not detected or "
+              "with a failed PnP count as failures.", ""]
+    bop = metrics.get("bop19") or {}
+    if bop:
+        lines.append(f"BOP19 (results.csv scored by kpd6d-score): AR_MSSD {_pct(bop.get('ar_mssd'))} %, "
+                     f"AR_MSPD {_pct(bop.get('ar_mspd'))} %. VSD: {bop.get('vsd', 'skipped')}.")
+    fps = metrics.get("fps")
+    if fps:
+        lines.append(f"Speed: {fps:.2f} frames/s end to end on {info.get('device', '?')} "
+                     f"(batch size {info.get('batch_size', '?')}); stage times per frame (ms): "
+                     + ", ".join(f"{k} {1000 * v:.1f}" for k, v in metrics.get("stage_seconds_per_frame", {}).items()))
+    lines.append(f"Failures (not detected or PnP not ok): {metrics.get('failures', 0)} of {m['n']} instances.")
+    lines += ["", "![accuracy vs pixel threshold](accuracy_vs_px.png)", "",
+              "![accuracy vs ADD threshold](accuracy_vs_add.png)", ""]
+    for ov in overlays or []:
+        lines.append(f"![overlay]({ov})")
+    if overlays:
+        lines += ["", "Overlays: ground truth green, prediction blue."]
+    _atomic_write_text(path, "\n".join(lines) + "\n")
+    return path

@@ -1,0 +1,161 @@
+"""The evaluation loop on a hand-made BOP dataset with the oracle detector and a GT-aware fake KPD."""
+
+from __future__ import annotations
+
+import json
+
+import cv2
+import numpy as np
+import pytest
+import torch
+import trimesh
+
+from kpd6d.data import BopDataset
+from kpd6d.evaluation.bop19 import score_bop19_file
+from kpd6d.evaluation.evaluate import evaluate
+from kpd6d.evaluation.results_io import read_bop_results
+from kpd6d.geometry import LINEMOD_K, bbox_from_points, pose_from_view, project_points
+from kpd6d.pipeline import PosePipeline
+from kpd6d.registry import DETECTORS
+
+EXTENTS = {1: (60.0, 60.0, 60.0), 2: (80.0, 40.0, 30.0)}
+
+
+def _keypoints(oid):
+    corners = trimesh.creation.box(extents=EXTENTS[oid]).vertices
+    return np.concatenate([corners, 0.5 * corners[:4] + [3.0, -2.0, 1.0]])
+
+
+def make_dataset(root, n_frames=3, hidden=None):
+    """Scene 1 with ``n_frames`` black 320x240 images, objects 1 and 2 in each; ``hidden=(im, obj)`` has an empty visible box."""
+    mdir = root / "models"
+    mdir.mkdir(parents=True)
+    info = {}
+    for oid, ext in EXTENTS.items():
+        box = trimesh.creation.box(extents=ext)
+        box.export(mdir / f"obj_{oid:06d}.ply")
+        info[str(oid)] = {"diameter": float(np.linalg.norm(ext))}
+    (mdir / "models_info.json").write_text(json.dumps(info))
+    sdir = root / "test" / "000001"
+    (sdir / "rgb").mkdir(parents=True)
+    K = LINEMOD_K.copy()
+    K[0, 2], K[1, 2] = 160.0, 120.0
+    gt, gi, cam, poses = {}, {}, {}, {}
+    for im in range(n_frames):
+        cv2.imwrite(str(sdir / "rgb" / f"{im:06d}.png"), np.full((240, 320, 3), 40, np.uint8))
+        gt[str(im)], gi[str(im)] = [], []
+        for j, oid in enumerate((1, 2)):
+            R, t = pose_from_view(0.4 * im + j, 0.5, 900.0, 0.2 * j)
+            t = t + np.array([-60.0 + 120 * j, 10.0 * im, 0.0])
+            poses[(im, oid)] = (R, t)
+            box = bbox_from_points(project_points(_keypoints(oid)[:8], K, R, t)).round().astype(int).tolist()
+            vis = [0, 0, 0, 0] if hidden == (im, oid) else box
+            gt[str(im)].append({"obj_id": oid, "cam_R_m2c": R.reshape(-1).tolist(), "cam_t_m2c": t.tolist()})
+            gi[str(im)].append({"bbox_obj": box, "bbox_visib": vis, "px_count_all": 100, "px_count_valid": 100,
+                                "px_count_visib": 0 if vis == [0, 0, 0, 0] else 90,
+                                "visib_fract": 0.0 if vis == [0, 0, 0, 0] else 0.9})
+        cam[str(im)] = {"cam_K": K.reshape(-1).tolist(), "depth_scale": 1.0}
+    for name, d in (("scene_gt", gt), ("scene_gt_info", gi), ("scene_camera", cam)):
+        (sdir / f"{name}.json").write_text(json.dumps(d))
+    (root / "camera.json").write_text(json.dumps({"width": 320, "height": 240, "fx": K[0, 0], "fy": K[1, 1],
+                                                  "cx": 160.0, "cy": 120.0, "depth_scale": 1.0}))
+    return root, poses, K
+
+
+class BoxKeyedKPD:
+    """Finds the GT pose of each box (the oracle passes the GT boxes) and returns the exact projected
+    keypoints of that pose, optionally offset in 3D (``offset[obj_id]`` mm) or broken (``nan_obj``)."""
+
+    def __init__(self, root, poses, K, offset=None, nan_obj=None):
+        self.keypoints_3d = {o: _keypoints(o) for o in EXTENTS}
+        self.by_box = {}
+        for (_im, oid), (R, t) in poses.items():
+            box = tuple(bbox_from_points(project_points(self.keypoints_3d[oid][:8], K, R, t)).round().astype(int))
+            self.by_box[(oid, box)] = (R, t)
+        self.K, self.offset, self.nan_obj = K, offset or {}, nan_obj
+        self.calls = 0
+
+    def predict_keypoints(self, images, boxes, image_index, obj_ids):
+        self.calls += 1
+        kps = []
+        for box, oid in zip(boxes.cpu().numpy().round().astype(int), obj_ids.tolist()):
+            R, t = self.by_box[(oid, tuple(box))]
+            uv = project_points(self.keypoints_3d[oid], self.K, R, t + np.asarray(self.offset.get(oid, [0, 0, 0.0])))
+            kps.append(np.full_like(uv, np.nan) if oid == self.nan_obj else uv)
+        n = len(kps)
+        return torch.tensor(np.stack(kps)), torch.ones(n, len(self.keypoints_3d[1]), dtype=torch.float64)
+
+
+def _pipeline(kpd):
+    return PosePipeline(DETECTORS.build("oracle"), kpd, pnp="epnp", top_l=None, device="cpu")
+
+
+def test_perfect_predictions_write_all_outputs(tmp_path):
+    root, poses, K = make_dataset(tmp_path / "ds")
+    ds = BopDataset(root)
+    out = tmp_path / "run"
+    m = evaluate(_pipeline(BoxKeyedKPD(root, poses, K)), ds, out, oracle=True, batch_size=2, n_overlays=2,
+                 progress=False)
+    for name in ("metrics.json", "results.csv", "report.md", "accuracy_vs_px.png", "accuracy_vs_add.png",
+                 "overlays/000001_000000.png", "overlays/000001_000001.png", "predictions.jsonl"):
+        assert (out / name).is_file(), name
+    assert m["mean"]["add_s_01d"] == 1.0 and m["mean"]["proj2d_5px"] == 1.0 and m["failures"] == 0
+    assert m["mean"]["n"] == 6 and set(m["per_object"]) == {"1", "2"}
+    assert m["bop19"]["ar_mssd"] == 1.0 and m["bop19"]["ar_mspd"] == 1.0
+    assert m["fps"] > 0 and {"detect", "kpd", "pnp"} <= set(m["stage_seconds_per_frame"])
+    assert json.loads((out / "metrics.json").read_text())["mean"]["add_s_01d"] == 1.0
+    # results.csv is a valid BOP file that the scorer accepts on the dataset itself
+    assert len(read_bop_results(out / "results.csv")) == 6
+    s = score_bop19_file(out / "results.csv", root, targets_filename=str(out / "test_targets_bop19.json"))
+    assert s["ar_mssd"] == 1.0
+    report = (out / "report.md").read_text()
+    assert "| **mean** | | 6 | **100.0** | **100.0** |" in report and "accuracy_vs_px.png" in report
+    # the overlay shows the green GT box where the GT projects (and blue drawn over it)
+    ov = cv2.cvtColor(cv2.imread(str(out / "overlays/000001_000000.png")), cv2.COLOR_BGR2RGB)
+    assert (np.abs(ov.astype(int) - [30, 90, 255]).sum(-1) < 60).sum() > 100
+    assert (np.abs(ov.astype(int) - [40, 40, 40]).sum(-1) == 0).mean() > 0.8
+
+
+def test_known_translation_error_gives_known_curves(tmp_path):
+    root, poses, K = make_dataset(tmp_path / "ds")
+    d1 = float(np.linalg.norm(EXTENTS[1]))  # 103.92 mm
+    off = 0.075 * d1  # ADD of a pure translation = its length, for every point
+    m = evaluate(_pipeline(BoxKeyedKPD(root, poses, K, offset={1: [off, 0, 0]})), BopDataset(root), tmp_path / "r",
+                 oracle=True, n_overlays=0, progress=False)
+    o1, o2 = m["per_object"]["1"], m["per_object"]["2"]
+    assert o1["add_s_01d"] == 1.0 and o2["add_s_01d"] == 1.0
+    curve = np.asarray(o1["curves"]["add_s"])  # thresholds 0, 0.01, ..., 0.5
+    assert curve[7] == 0.0 and curve[8] == 1.0  # 0.075 d is not < 0.07 d, but < 0.08 d
+    assert o1["auc_add_s"] == pytest.approx((0.5 - 0.075) / 0.5, rel=1e-6)
+    assert np.asarray(o2["curves"]["add_s"])[1] == 1.0
+    # mean curve = mean of the object curves
+    np.testing.assert_allclose(m["mean"]["curves"]["add_s"], (curve + np.asarray(o2["curves"]["add_s"])) / 2)
+
+
+def test_undetected_and_failed_pnp_count_as_failures(tmp_path):
+    root, poses, K = make_dataset(tmp_path / "ds", hidden=(1, 2))
+    kpd = BoxKeyedKPD(root, poses, K, nan_obj=None)
+    m = evaluate(_pipeline(kpd), BopDataset(root), tmp_path / "a", oracle=True, n_overlays=0, progress=False)
+    assert m["per_object"]["2"]["n"] == 3 and m["per_object"]["2"]["failures"] == 1
+    assert m["per_object"]["2"]["add_s_01d"] == pytest.approx(2 / 3)
+    assert m["mean"]["add_s_01d"] == pytest.approx((1 + 2 / 3) / 2)
+    # object 1's PnP fails everywhere (non-finite keypoints): all three are failures, none dropped
+    kpd = BoxKeyedKPD(root, poses, K, nan_obj=1)
+    m = evaluate(_pipeline(kpd), BopDataset(root), tmp_path / "b", oracle=True, n_overlays=0, progress=False)
+    assert m["per_object"]["1"]["n"] == 3 and m["per_object"]["1"]["add_s_01d"] == 0.0
+    assert m["failures"] == 4 and m["per_object"]["1"]["curves"]["proj2d"][-1] == 0.0
+    # BOP19 does not count the hidden instance (visib_fract 0 < 0.1): 2 correct of 5 targets
+    assert m["bop19"]["ar_mssd"] == pytest.approx(2 / 5) and m["bop19"]["n_targets"] == 5
+
+
+def test_resume_skips_done_frames(tmp_path):
+    root, poses, K = make_dataset(tmp_path / "ds", n_frames=4)
+    out = tmp_path / "run"
+    first = evaluate(_pipeline(BoxKeyedKPD(root, poses, K)), BopDataset(root), out, oracle=True, n_overlays=0,
+                     progress=False)
+    lines = (out / "predictions.jsonl").read_text().splitlines()
+    (out / "predictions.jsonl").write_text("\n".join(lines[:2]) + "\n" + lines[2][:20])  # cut mid-line
+    kpd = BoxKeyedKPD(root, poses, K)
+    again = evaluate(_pipeline(kpd), BopDataset(root), out, oracle=True, n_overlays=0, progress=False)
+    assert kpd.calls == 2  # frames 2 and 3 only (batch size 1)
+    assert again["mean"] == first["mean"]

@@ -159,3 +159,39 @@ def test_resume_skips_done_frames(tmp_path):
     again = evaluate(_pipeline(kpd), BopDataset(root), out, oracle=True, n_overlays=0, progress=False)
     assert kpd.calls == 2  # frames 2 and 3 only (batch size 1)
     assert again["mean"] == first["mean"]
+
+
+def _tiny_kpd_checkpoint(path):
+    import pytorch_lightning as pl
+
+    from kpd6d.kpd.module import KPDModule
+
+    torch.manual_seed(0)
+    m = KPDModule(obj_ids=[1, 2], keypoints_3d=[_keypoints(1), _keypoints(2)], diameters=[103.9, 94.3],
+                  backbone={"name": "resnet18"}, head={"name": "deconv", "deconv_channels": 32}, input_size=64,
+                  out_stride=4)
+    trainer = pl.Trainer(accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+                         enable_model_summary=False, default_root_dir=path.parent)
+    trainer.strategy.connect(m)
+    trainer.save_checkpoint(path)
+    return path
+
+
+def test_kpd6d_evaluate_cli_with_a_real_untrained_kpd(tmp_path, monkeypatch, capsys):
+    import sys
+
+    from kpd6d.cli.evaluate import main
+
+    root, _, _ = make_dataset(tmp_path / "ds", n_frames=2)
+    ckpt = _tiny_kpd_checkpoint(tmp_path / "kpd.ckpt")
+    out = tmp_path / "run"
+    monkeypatch.setattr(sys, "argv", ["kpd6d-evaluate", f"data.root={root}", f"kpd_ckpt={ckpt}", "detector_ckpt=oracle",
+                                      "device=cpu", "progress=false", "overlays=1", "pipeline=ransac",
+                                      f"hydra.run.dir={out}"])
+    main()
+    m = json.loads((out / "metrics.json").read_text())
+    assert m["mean"]["n"] == 4  # every instance evaluated, however bad the untrained KPD is
+    assert m["run"]["pipeline"] == "ransac" and m["run"]["top_l"] == 20 and m["run"]["device"] == "cpu"
+    for name in ("results.csv", "report.md", "accuracy_vs_px.png", "accuracy_vs_add.png", "overlays/000001_000000.png"):
+        assert (out / name).is_file(), name
+    assert "wrote" in capsys.readouterr().out

@@ -65,10 +65,10 @@ def draw_overlay(image: np.ndarray, K, corners: dict[int, np.ndarray], gt: list[
     out = np.ascontiguousarray(image.copy())
     for oid, R, t in gt:
         if oid in corners:
-            draw_box_3d(out, corners[oid], K, R, t, GT_COLOR)
+            draw_box_3d(out, corners[oid], K, R, t, GT_COLOR, thickness=3)
     for oid, R, t in pred:
         if oid in corners:
-            draw_box_3d(out, corners[oid], K, R, t, PRED_COLOR)
+            draw_box_3d(out, corners[oid], K, R, t, PRED_COLOR, thickness=1)
     return out
 
 

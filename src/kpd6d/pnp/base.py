@@ -117,7 +117,8 @@ class Problems:
 
 
 class PnPSolver:
-    """Base class. Subclasses set ``min_points`` (and ``need_nonplanar``) and implement
+    """Base class. Subclasses set ``min_points`` (and ``coplanar_rtol`` when coplanar 3D points
+    are degenerate for them) and implement
     :meth:`_solve`, which gets only the problems that passed :func:`diagnose_inputs`.
 
     ``max_reprojection_error`` (px, default None = off): when set, a solution whose median
@@ -126,7 +127,7 @@ class PnPSolver:
 
     name: str = "pnp"
     min_points: int = 4
-    need_nonplanar: bool = False
+    coplanar_rtol: float | None = None
 
     def __init__(self, max_reprojection_error: float | None = None) -> None:
         if max_reprojection_error is not None and not max_reprojection_error > 0:
@@ -151,7 +152,7 @@ class PnPSolver:
         B, N = probs.points_3d.shape[:2]
         use, reasons = diagnose_inputs(
             probs.points_3d, probs.points_2d, probs.K, probs.confidences,
-            method=self.name, min_points=self.min_points, need_nonplanar=self.need_nonplanar,
+            method=self.name, min_points=self.min_points, coplanar_rtol=self.coplanar_rtol,
         )
         R = np.full((B, 3, 3), np.nan)
         t = np.full((B, 3), np.nan)

@@ -12,12 +12,10 @@ import numpy as np
 
 from kpd6d.geometry import project_points, transform_points
 
-__all__ = ["COLLINEAR_RTOL", "COPLANAR_RTOL", "diagnose_inputs", "diagnose_solutions"]
+__all__ = ["COLLINEAR_RTOL", "diagnose_inputs", "diagnose_solutions"]
 
 #: A point set is collinear when its second principal spread is below this fraction of its first.
 COLLINEAR_RTOL = 1e-6
-#: A 3D point set is coplanar (for solvers that need depth, e.g. DLT) below this third/first ratio.
-COPLANAR_RTOL = 1e-3
 
 
 def _spreads(points: np.ndarray, use: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -41,7 +39,7 @@ def diagnose_inputs(
     *,
     method: str,
     min_points: int,
-    need_nonplanar: bool = False,
+    coplanar_rtol: float | None = None,
 ) -> tuple[np.ndarray, list[str]]:
     """Points each problem may use (confidence > 0) and why a problem cannot be solved.
 
@@ -49,7 +47,8 @@ def diagnose_inputs(
     all float64 and already shape-checked. Returns ``use`` (B, N) bool and B reasons, the first
     that applies of: invalid K, non-finite or negative confidences, all confidences zero, NaN/inf
     among the used points, fewer than ``min_points`` used points, coincident / collinear 3D points,
-    coplanar 3D points (only when ``need_nonplanar``), coincident / collinear 2D points.
+    coplanar 3D points (only with ``coplanar_rtol``: third principal spread <= coplanar_rtol x
+    first), coincident / collinear 2D points.
     """
     B, N = points_3d.shape[:2]
     reasons = [""] * B
@@ -92,9 +91,10 @@ def diagnose_inputs(
     s2, scale2 = _spreads(points_2d, use)
     fail(s3[:, 0] <= 1e-9 * (1.0 + scale3), lambda i: "all 3D points coincide")
     fail(s3[:, 1] <= COLLINEAR_RTOL * s3[:, 0], lambda i: "3D points are collinear")
-    if need_nonplanar:
-        fail(s3[:, 2] <= COPLANAR_RTOL * s3[:, 0],
-             lambda i: f"3D points are coplanar (thickness/extent {s3[i, 2] / s3[i, 0]:.2g}); {method} needs non-planar points")
+    if coplanar_rtol is not None:
+        fail(s3[:, 2] <= coplanar_rtol * s3[:, 0],
+             lambda i: f"3D points are coplanar (thickness/extent {s3[i, 2] / s3[i, 0]:.2g} <= {coplanar_rtol:g}); "
+                       f"{method} needs non-planar points")
     fail(s2[:, 0] <= 1e-9 * (1.0 + scale2), lambda i: "all 2D points coincide")
     fail(s2[:, 1] <= COLLINEAR_RTOL * s2[:, 0], lambda i: "2D points are collinear")
     return use, reasons

@@ -111,7 +111,8 @@ def test_batch_agrees_with_single_and_array_types(name):
     assert batch.R.shape == (6, 3, 3) and batch.t.shape == (6, 3) and batch.inliers.shape == (6, 30)
     assert batch.ok.all(), batch.reasons
     assert not batch.inliers[0, :3].any()
-    assert (np.linalg.norm(batch.t - t, axis=-1) < 0.05 * t[:, 2]).all()  # near the truth (1 px noise)
+    # near the truth under 1 px noise (DLT, an algebraic fit, is the least accurate: up to 6.4 % of z here)
+    assert (np.linalg.norm(batch.t - t, axis=-1) < (0.1 if name == "dlt" else 0.02) * t[:, 2]).all()
     # weighted_lm starts batches from DLT and single problems from EPnP: both converge to the same minimum
     tol = 1e-6 if name == "weighted_lm" else 1e-9
     for b in range(6):

@@ -18,7 +18,7 @@ _BOX_EDGES = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0
 
 
 def _pt(p) -> tuple[int, int]:
-    return int(round(float(p[0]) * 16)), int(round(float(p[1]) * 16))  # 4 fractional bits (cv2 shift=4)
+    return round(float(p[0]) * 16), round(float(p[1]) * 16)  # 4 fractional bits (cv2 shift=4)
 
 
 def draw_pose(img: np.ndarray, K, R, t, model, keypoints: np.ndarray | None = None,
@@ -32,7 +32,7 @@ def draw_pose(img: np.ndarray, K, R, t, model, keypoints: np.ndarray | None = No
         cv2.line(img, _pt(corners[a]), _pt(corners[b]), color, thickness, cv2.LINE_AA, shift=4)
     c = model.bbox_min + model.bbox_size / 2
     L = float(model.bbox_size.max()) * 0.5
-    axes = project_points(np.array([c, c + [L, 0, 0], c + [0, L, 0], c + [0, 0, L]]), K, R, t)
+    axes = project_points(np.vstack([c, c + L * np.eye(3)]), K, R, t)
     for k, col in enumerate([(255, 0, 0), (0, 255, 0), (0, 0, 255)]):
         cv2.line(img, _pt(axes[0]), _pt(axes[k + 1]), col, thickness + 1, cv2.LINE_AA, shift=4)
     if keypoints is not None and len(keypoints):

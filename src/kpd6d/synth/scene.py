@@ -3,7 +3,8 @@ mutual occlusion is right), paste them over a background, and compute the BOP gr
 
 Ground truth follows bop_toolkit's ``calc_gt_info``: ``bbox_obj`` is the box of the whole silhouette
 (including any part outside the image; here from the projected model vertices, as pixel indices:
-``x = round(u_min)``, ``w = round(u_max) - x``), ``px_count_all`` the whole silhouette's pixel count
+``x = ceil(u_min)``, ``w = floor(u_max) - x``; ``[-1, -1, -1, -1]`` when nothing is visible, as
+bop_toolkit does), ``px_count_all`` the whole silhouette's pixel count
 (also outside the image), ``px_count_valid`` the silhouette's pixels inside the image (all of which
 have rendered depth), ``px_count_visib`` the visible-mask pixels, ``visib_fract = visib / all``.
 """
@@ -58,10 +59,13 @@ class SceneSample:
 
 
 def bbox_obj_from_uv(uv: np.ndarray) -> list[int]:
-    """BOP box of a silhouette from its projected vertices, as pixel indices (bop_toolkit style)."""
-    lo = np.round(uv.min(axis=0)).astype(np.int64)
-    hi = np.round(uv.max(axis=0)).astype(np.int64)
-    return [int(lo[0]), int(lo[1]), int(hi[0] - lo[0]), int(hi[1] - lo[1])]
+    """BOP box (x, y, w, h) of the silhouette of projected vertices ``uv`` (N, 2), as pixel indices
+    (bop_toolkit's ``calc_2d_bbox`` of the rendered silhouette): with pixel centres at integer
+    coordinates the covered pixels run from ``ceil(min)`` to ``floor(max)``."""
+    lo = np.ceil(uv.min(axis=0)).astype(np.int64)
+    hi = np.floor(uv.max(axis=0)).astype(np.int64)
+    w, h = (int(v) for v in np.maximum(hi - lo, 0))
+    return [int(lo[0]), int(lo[1]), w, h]
 
 
 def silhouette_counts(renderer, model, R, t, K, width, height, bbox_obj) -> tuple[int, int]:
@@ -174,18 +178,20 @@ class SceneComposer:
             uv = project_points(self.geoms[k].hull, self.K, R, t)  # same extremes as all vertices
             bbox_obj = bbox_obj_from_uv(uv)
             x, y, w, h = bbox_obj
-            inside_image = x >= 0 and y >= 0 and x + w <= self.W - 1 and y + h <= self.H - 1
+            # (1 px of slack around the box against rasterization ties)
+            inside_image = x >= 1 and y >= 1 and x + w <= self.W - 2 and y + h <= self.H - 2
             # could anything cover it? only if another rendered item shows inside its box
             others = [res.masks_visib[j] for j in range(len(items)) if j != i]
-            x0, y0 = max(x, 0), max(y, 0)
-            x1, y1 = min(x + w, self.W - 1) + 1, min(y + h, self.H - 1) + 1
+            x0, y0 = max(x - 1, 0), max(y - 1, 0)
+            x1, y1 = min(x + w + 1, self.W - 1) + 1, min(y + h + 1, self.H - 1) + 1
             occluded = any(np.any(m[y0:y1, x0:x1]) for m in others) if x1 > x0 and y1 > y0 else False
             if inside_image and not occluded:
                 px_all, px_valid = visib, visib
             else:
                 px_all, px_valid = silhouette_counts(self.renderer, model, R, t, self.K, self.W, self.H, bbox_obj)
             instances.append(SceneInstance(
-                obj_id=int(model.obj_id), R=R, t=t, mask_visib=mask, bbox_obj=bbox_obj,
+                obj_id=int(model.obj_id), R=R, t=t, mask_visib=mask,
+                bbox_obj=bbox_obj if visib > 0 else [-1, -1, -1, -1],
                 bbox_visib=bbox_from_mask(mask), px_count_all=px_all, px_count_valid=px_valid,
                 px_count_visib=visib, visib_fract=float(visib / px_all) if px_all > 0 else 0.0,
             ))

@@ -1,0 +1,406 @@
+"""Synthetic data engine: ground-truth consistency, determinism, resume, options and errors."""
+
+from __future__ import annotations
+
+import json
+import math
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from kpd6d.data import BopDataset, load_scene_gt
+from kpd6d.geometry import project_points, view_from_pose
+from kpd6d.synth import SynthConfig, default_K, generate_dataset
+from synth_helpers import SMALL, tree_bytes, write_models
+
+# ---------------------------------------------------------------------------------------------
+# fixtures
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.fixture(scope="module")
+def models_dir(tmp_path_factory) -> Path:
+    return write_models(tmp_path_factory.mktemp("models"))
+
+
+@pytest.fixture(scope="module")
+def dataset(tmp_path_factory, models_dir) -> Path:
+    """14 images in scenes of 5, 1-2 objects and 0-2 occluders each, with depth."""
+    root = tmp_path_factory.mktemp("synth")
+    generate_dataset(root, models_dir, num_images=14, seed=7, progress=False, objects_per_image=(1, 2),
+                     distractors=(0, 2), scene_size=5, depth=True, visib_fract_range=(0.2, 1.0), **SMALL)
+    return root
+
+
+def _rasterize(model, K, R, t, width, height, pad=0):
+    """Independent silhouette: pixel centres (integer coordinates) inside any projected triangle
+    (edge-function test per triangle), on a canvas enlarged by ``pad`` px on each side."""
+    uv = project_points(model.vertices, K, R, t) + pad
+    canvas = np.zeros((height + 2 * pad, width + 2 * pad), bool)
+    for a, b, c in uv[model.faces]:
+        lo = np.maximum(np.ceil(np.minimum(np.minimum(a, b), c)), 0).astype(int)
+        hi = np.minimum(np.floor(np.maximum(np.maximum(a, b), c)), [canvas.shape[1] - 1, canvas.shape[0] - 1]).astype(int)
+        if (hi < lo).any():
+            continue
+        ys, xs = np.mgrid[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1]
+        p = np.stack([xs, ys], -1).astype(float)
+
+        def edge(p0, p1, p=p):
+            return (p1[0] - p0[0]) * (p[..., 1] - p0[1]) - (p1[1] - p0[1]) * (p[..., 0] - p0[0])
+
+        e = np.stack([edge(a, b), edge(b, c), edge(c, a)])
+        inside = (e >= 0).all(0) | (e <= 0).all(0)
+        canvas[lo[1] : hi[1] + 1, lo[0] : hi[0] + 1] |= inside
+    return canvas
+
+
+# ---------------------------------------------------------------------------------------------
+# ground-truth consistency on generated data
+# ---------------------------------------------------------------------------------------------
+def test_layout_and_files(dataset):
+    scenes = sorted(p.name for p in (dataset / "train").iterdir())
+    assert scenes == ["000000", "000001", "000002"]  # 14 images, scenes of 5
+    gt = load_scene_gt(dataset / "train" / "000002" / "scene_gt.json")
+    assert sorted(gt) == [0, 1, 2, 3]
+    for name in ("camera.json", "dataset_info.json", "models/models_info.json", "models/obj_000001.ply",
+                 "models/obj_000002.ply", "train/000000/rgb/000004.png", "train/000000/depth/000004.png",
+                 "train/000000/mask_visib/000004_000000.png"):
+        assert (dataset / name).is_file(), name
+    assert not list(dataset.rglob("*.tmp"))
+    cam = json.loads((dataset / "camera.json").read_text())
+    assert (cam["width"], cam["height"]) == (160, 120)
+    np.testing.assert_allclose(cam["fx"], 572.4114 / 4)
+
+
+def test_unoccluded_silhouette_matches_mask_visib(dataset):
+    ds = BopDataset(dataset, "train")
+    models = {m.obj_id: m for m in ds.load_models()}
+    checked = 0
+    for f in ds:
+        for inst in f.instances:
+            if inst.px_count_visib != inst.px_count_all or inst.px_count_all < 30:
+                continue
+            mask = f.load_mask_visib(inst.gt_index)
+            sil = _rasterize(models[inst.obj_id], f.K, inst.R, inst.t, 160, 120)
+            iou = (mask & sil).sum() / (mask | sil).sum()
+            assert iou >= 0.95, (f.scene_id, f.im_id, inst.gt_index, iou)
+            checked += 1
+    assert checked >= 5
+
+
+def test_bbox_obj_matches_projected_vertices(dataset):
+    ds = BopDataset(dataset, "train")
+    models = {m.obj_id: m for m in ds.load_models()}
+    n = 0
+    for f in ds:
+        for inst in f.instances:
+            uv = project_points(models[inst.obj_id].vertices, f.K, inst.R, inst.t)
+            x, y, w, h = inst.bbox_obj
+            lo, hi = uv.min(0), uv.max(0)
+            assert abs(x - lo[0]) <= 1 and abs(y - lo[1]) <= 1
+            assert abs(x + w - hi[0]) <= 1 and abs(y + h - hi[1]) <= 1
+            n += 1
+    assert n >= 14
+
+
+def test_counts_and_visible_fraction_agree_with_masks(dataset):
+    ds = BopDataset(dataset, "train")
+    models = {m.obj_id: m for m in ds.load_models()}
+    occluded = 0
+    for f in ds:
+        for inst in f.instances:
+            mask = f.load_mask_visib(inst.gt_index)
+            assert inst.px_count_visib == mask.sum()
+            ys, xs = np.nonzero(mask)
+            assert list(inst.bbox_visib) == [xs.min(), ys.min(), xs.max() - xs.min(), ys.max() - ys.min()]
+            assert inst.visib_fract == pytest.approx(inst.px_count_visib / inst.px_count_all)
+            assert 0.2 - 1e-9 <= inst.visib_fract <= 1.0
+            # px_count_all against an independent rasterization (whole silhouette, also off-image)
+            sil = _rasterize(models[inst.obj_id], f.K, inst.R, inst.t, 160, 120, pad=100)
+            assert abs(int(sil.sum()) - inst.px_count_all) <= 0.05 * inst.px_count_all + 3
+            inside = sil[100:-100, 100:-100].sum()
+            assert abs(int(inside) - inst.px_count_valid) <= 0.05 * inst.px_count_valid + 3
+            # visible pixels lie in the silhouette
+            assert (mask & ~sil[100:-100, 100:-100]).sum() <= 0.05 * mask.sum() + 3
+            occluded += inst.visib_fract < 0.98
+    assert occluded >= 2  # the occluders did occlude
+
+
+def test_depth_matches_pose(dataset):
+    ds = BopDataset(dataset, "train")
+    models = {m.obj_id: m for m in ds.load_models()}
+    for f in ds[:5]:
+        depth = f.load_depth()
+        assert f.depth_scale == pytest.approx(0.1)
+        for inst in f.instances:
+            mask = f.load_mask_visib(inst.gt_index)
+            z = depth[mask]
+            pts_c = models[inst.obj_id].vertices @ inst.R.T + inst.t
+            assert (z > 0).all()
+            assert z.min() >= pts_c[:, 2].min() - 1.0 and z.max() <= pts_c[:, 2].max() + 1.0
+
+
+def test_poses_within_ranges(dataset):
+    ds = BopDataset(dataset, "train")
+    for f in ds:
+        for inst in f.instances:
+            assert 180.0 - 40 <= inst.t[2] <= 400.0 + 40  # box centre at the sampled distance (+- object size)
+            np.testing.assert_allclose(inst.R @ inst.R.T, np.eye(3), atol=1e-9)
+            assert np.linalg.det(inst.R) == pytest.approx(1.0)
+
+
+def test_view_sampler_respects_ranges():
+    from kpd6d.synth.poses import ViewRanges, sample_view_rotation
+
+    rng = np.random.default_rng(0)
+    ranges = ViewRanges((500, 600), (10.0, 40.0), (30.0, 90.0), (0.0, 0.0))
+    for _ in range(200):
+        R = sample_view_rotation(rng, ranges)
+        az, el, _ = view_from_pose(R, np.array([0.0, 0.0, 1000.0]))
+        assert 10.0 - 1e-6 <= math.degrees(el) <= 40.0 + 1e-6
+        assert 30.0 - 1e-6 <= math.degrees(az) % 360 <= 90.0 + 1e-6
+
+
+def test_objects_kept_in_view():
+    from kpd6d.synth.poses import ModelGeometry, ViewRanges, projected_box, sample_object_pose
+
+    class M:
+        vertices = np.array([[x, y, z] for x in (-40, 40) for y in (-30, 30) for z in (-20, 20)], float)
+
+    g = ModelGeometry(M())
+    K = default_K(160, 120)
+    rng = np.random.default_rng(1)
+    for _ in range(100):
+        R, t = sample_object_pose(rng, g, K, 160, 120, ViewRanges(distance=(300, 500)), view_margin=0.0)
+        x, y, w, h = projected_box(g, K, R, t)[0]
+        assert x >= 0 and y >= 0 and x + w <= 159 and y + h <= 119
+
+
+def test_symmetric_poses_are_canonical(dataset):
+    from kpd6d.symmetry import handler_for_model
+
+    ds = BopDataset(dataset, "train", obj_ids=[2])
+    handler = handler_for_model(ds.load_models()[0])
+    assert len(ds) >= 2
+    for f in ds:
+        for inst in f.instances:
+            R2, t2 = handler.canonicalize(inst.R, inst.t)
+            np.testing.assert_allclose(R2, inst.R, atol=1e-6)
+            np.testing.assert_allclose(t2, inst.t, atol=1e-4)
+
+
+def test_default_K_scales_linemod():
+    K = default_K(640, 480)
+    from kpd6d.geometry import LINEMOD_K
+
+    np.testing.assert_allclose(K, LINEMOD_K)
+    # a point seen at pixel (u, v) at 640x480 is seen at ((u + .5) / 4 - .5, ...) at 160x120
+    X = np.array([[30.0, -20.0, 700.0]])
+    uv_big = project_points(X, LINEMOD_K)
+    uv_small = project_points(X, default_K(160, 120))
+    np.testing.assert_allclose(uv_small, (uv_big + 0.5) / 4 - 0.5)
+
+
+# ---------------------------------------------------------------------------------------------
+# determinism and resume
+# ---------------------------------------------------------------------------------------------
+_RUN = dict(num_images=6, seed=3, progress=False, distractors=(1, 1), scene_size=4, **SMALL)
+
+
+@pytest.fixture(scope="module")
+def reference(tmp_path_factory, models_dir) -> dict[str, bytes]:
+    root = tmp_path_factory.mktemp("ref")
+    generate_dataset(root, models_dir, **_RUN)
+    return tree_bytes(root)
+
+
+def test_same_seed_same_bytes_other_seed_differs(tmp_path, models_dir, reference):
+    generate_dataset(tmp_path / "a", models_dir, **_RUN)
+    assert tree_bytes(tmp_path / "a") == reference
+    generate_dataset(tmp_path / "b", models_dir, **{**_RUN, "seed": 4})
+    other = tree_bytes(tmp_path / "b")
+    assert other["train/000000/rgb/000000.png"] != reference["train/000000/rgb/000000.png"]
+    assert other["train/000000/scene_gt.json"] != reference["train/000000/scene_gt.json"]
+
+
+def test_resume_after_lost_files_and_unrecorded_images(tmp_path, models_dir, reference):
+    root = tmp_path / "r"
+    generate_dataset(root, models_dir, **_RUN)
+    sd = root / "train" / "000000"
+    (sd / "rgb" / "000001.png").unlink()  # an image file lost
+    (sd / "mask_visib" / "000002_000000.png").unlink()
+    gt = json.loads((sd / "scene_gt.json").read_text())  # an image not yet recorded
+    del gt["3"]
+    (sd / "scene_gt.json").write_text(json.dumps(gt))
+    (sd / "rgb" / ".000003.png.abc.tmp").write_bytes(b"half-written")  # debris of a killed writer
+    generate_dataset(root, models_dir, **_RUN)
+    assert tree_bytes(root) == reference
+
+
+def test_resume_after_interruption(tmp_path, models_dir, reference, monkeypatch):
+    import kpd6d.synth.generate as gen
+
+    real = gen._make_image
+    calls = {"n": 0}
+
+    def flaky(index):
+        calls["n"] += 1
+        if calls["n"] == 4:
+            raise KeyboardInterrupt
+        return real(index)
+
+    monkeypatch.setattr(gen, "_make_image", flaky)
+    root = tmp_path / "i"
+    with pytest.raises(KeyboardInterrupt):
+        generate_dataset(root, models_dir, **_RUN)
+    done = load_scene_gt(root / "train" / "000000" / "scene_gt.json")
+    assert sorted(done) == [0, 1, 2]  # the finished images were recorded before stopping
+    monkeypatch.setattr(gen, "_make_image", real)
+    generate_dataset(root, models_dir, **_RUN)
+    assert tree_bytes(root) == reference
+
+
+@pytest.mark.slow
+def test_killed_run_resumes_and_workers_do_not_change_result(tmp_path, models_dir, reference):
+    """A run with 2 worker processes is SIGKILLed mid-way; the rerun finishes it, and the result is
+    the bytes of the single-process reference."""
+    import signal
+    import subprocess
+    import sys
+    import time
+
+    root = tmp_path / "k"
+    code = (
+        f"import sys; sys.path.insert(0, {str(Path(__file__).parent)!r})\n"
+        "from synth_helpers import SMALL\n"
+        "from kpd6d.synth import generate_dataset\n"
+        "if __name__ == '__main__':\n"
+        f"    generate_dataset({str(root)!r}, {str(models_dir)!r}, workers=2, num_images=400, seed=3, progress=False,"
+        " distractors=(1, 1), scene_size=4, **SMALL)\n"
+    )
+    script = tmp_path / "run.py"
+    script.write_text(code)
+    proc = subprocess.Popen([sys.executable, str(script)], start_new_session=True)
+    deadline = time.monotonic() + 120
+    while time.monotonic() < deadline and len(list(root.glob("train/*/scene_gt.json"))) < 3:
+        time.sleep(0.2)
+    import os
+
+    os.killpg(proc.pid, signal.SIGKILL)
+    proc.wait()
+    n_done = sum(len(load_scene_gt(p)) for p in root.glob("train/*/scene_gt.json"))
+    assert 0 < n_done < 400
+    generate_dataset(root, models_dir, workers=2, **{**_RUN, "num_images": 400})
+    got = tree_bytes(root)
+    for name, data in reference.items():  # the first 6 images are the single-process reference's
+        if (name.startswith("train/000000/") and "scene_" not in name) or name.startswith("train/000001/rgb"):
+            assert got[name] == data, name
+    ds = BopDataset(root, "train")
+    assert len(ds) == 400
+    assert not list(root.rglob("*.tmp"))
+
+
+def test_resume_refuses_other_settings(tmp_path, models_dir):
+    generate_dataset(tmp_path, models_dir, **{**_RUN, "num_images": 1})
+    with pytest.raises(ValueError, match=r"different settings \(config\)"):
+        generate_dataset(tmp_path, models_dir, **{**_RUN, "num_images": 1, "feather_sigma": 0.0})
+    with pytest.raises(ValueError, match="seed"):
+        generate_dataset(tmp_path, models_dir, **{**_RUN, "num_images": 1, "seed": 5})
+    # more images with the same settings extend the split
+    generate_dataset(tmp_path, models_dir, **{**_RUN, "num_images": 2})
+    assert len(BopDataset(tmp_path, "train")) == 2
+
+
+# ---------------------------------------------------------------------------------------------
+# options
+# ---------------------------------------------------------------------------------------------
+def test_all_objects_jpg_no_photometric(tmp_path, models_dir):
+    generate_dataset(tmp_path, models_dir, num_images=2, progress=False, objects_per_image="all", distractors=(0, 0),
+                     rgb_format="jpg", photometric={"prob": 0.0}, **SMALL)
+    ds = BopDataset(tmp_path, "train")
+    assert [sorted(i.obj_id for i in f.instances) for f in ds] == [[1, 2], [1, 2]]
+    assert ds[0].rgb_path.suffix == ".jpg"
+    assert ds[0].load_rgb().shape == (120, 160, 3)
+
+
+def test_backgrounds_folder_is_used(tmp_path, models_dir):
+    import cv2
+
+    bgs = tmp_path / "bgs"
+    (bgs / "sub").mkdir(parents=True)
+    cv2.imwrite(str(bgs / "sub" / "red.png"), np.full((50, 90, 3), (0, 0, 255), np.uint8))  # BGR red
+    generate_dataset(tmp_path / "d", models_dir, num_images=2, progress=False, distractors=(0, 0),
+                     backgrounds_dir=str(bgs), photometric={"prob": 0.0}, feather_sigma=0.0, **SMALL)
+    f = BopDataset(tmp_path / "d", "train")[0]
+    rgb = f.load_rgb()
+    bg = ~f.load_mask_visib(0)
+    assert (rgb[bg] == [255, 0, 0]).all()
+    obj = rgb[~bg]
+    assert not (obj == [255, 0, 0]).all(axis=1).all()
+
+
+def test_procedural_objects_are_the_default(tmp_path):
+    generate_dataset(tmp_path, None, obj_ids=[1, 2], num_images=2, progress=False, distractors=(0, 0),
+                     **{**SMALL, "distance_range": (300.0, 500.0)})
+    ds = BopDataset(tmp_path, "train")
+    assert sorted(p.name for p in (tmp_path / "models").glob("*.ply")) == ["obj_000001.ply", "obj_000002.ply"]
+    assert {i.obj_id for f in ds for i in f.instances} <= {1, 2}
+    models = ds.load_models()
+    from kpd6d.objects import procedural_objects
+
+    ref = {m.obj_id: m for m in procedural_objects(obj_ids=[1, 2])}
+    for m in models:
+        np.testing.assert_allclose(m.vertices, ref[m.obj_id].vertices, atol=1e-3)  # PLY stores float32
+
+
+def test_photometric_effects():
+    from kpd6d.synth.photometric import PhotometricConfig, apply_photometric
+
+    img = np.random.default_rng(0).integers(0, 256, (40, 50, 3), dtype=np.uint8)
+    assert apply_photometric(img, np.random.default_rng(0), PhotometricConfig(prob=0.0)) is img
+    out = apply_photometric(img, np.random.default_rng(0), PhotometricConfig(prob=1.0))
+    assert out.shape == img.shape and out.dtype == np.uint8 and not np.array_equal(out, img)
+    with pytest.raises(ValueError, match="unknown option"):
+        PhotometricConfig.from_mapping({"blurr": 1})
+
+
+def test_procedural_backgrounds_vary_and_are_deterministic():
+    from kpd6d.synth.backgrounds import procedural_background
+
+    a = procedural_background(np.random.default_rng(5), 64, 48)
+    b = procedural_background(np.random.default_rng(5), 64, 48)
+    c = procedural_background(np.random.default_rng(6), 64, 48)
+    assert a.shape == (48, 64, 3) and a.dtype == np.uint8
+    assert np.array_equal(a, b) and not np.array_equal(a, c)
+    assert a.std() > 1.0  # not a flat colour
+
+
+# ---------------------------------------------------------------------------------------------
+# errors
+# ---------------------------------------------------------------------------------------------
+def test_bad_options_are_named(tmp_path, models_dir):
+    with pytest.raises(TypeError, match=r"unknown option\(s\) colour.*known options:.*width"):
+        generate_dataset(tmp_path, models_dir, num_images=1, colour=1)
+    with pytest.raises(ValueError, match="distance_range"):
+        SynthConfig.from_options({"distance_range": (500, 100)})
+    with pytest.raises(ValueError, match="visib_fract_range"):
+        SynthConfig.from_options({"visib_fract_range": (0.5, 1.5)})
+    with pytest.raises(ValueError, match="objects_per_image"):
+        SynthConfig.from_options({"objects_per_image": "some"})
+    with pytest.raises(ValueError, match="rgb_format"):
+        SynthConfig.from_options({"rgb_format": "gif"})
+    with pytest.raises(FileNotFoundError, match="models_dir"):
+        generate_dataset(tmp_path, tmp_path / "nope", num_images=1)
+
+
+def test_bad_backgrounds_are_named(tmp_path, models_dir):
+    from kpd6d.synth.backgrounds import FolderBackgrounds
+
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(FileNotFoundError, match="no image files"):
+        FolderBackgrounds(empty)
+    (empty / "broken.jpg").write_bytes(b"not a jpeg")
+    with pytest.raises(OSError, match=r"broken\.jpg"):
+        FolderBackgrounds(empty).sample(np.random.default_rng(0), 32, 24)

@@ -11,11 +11,11 @@ import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
-from dataclasses import dataclass, field  # noqa: E402
+from dataclasses import dataclass, field
 
-import numpy as np  # noqa: E402
+import numpy as np
 
-from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K, cv_pose_to_gl_model_view  # noqa: E402
+from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K, cv_pose_to_gl_model_view
 
 __all__ = ["Light", "Lighting", "RenderResult", "Renderer"]
 
@@ -133,13 +133,28 @@ class Renderer:
             return pm
         return pm[0]
 
+    def _seg_pass(self, scene, nodes):
+        """Depth (mm) and per-pixel instance ids (0: none) from pyrender's segmentation pass.
+
+        pyrender renders colour with 4x multisampling, and its depth read-back then picks one
+        sample, about 0.4 px off the pixel centre; the segmentation pass runs without multisampling,
+        so its depth and ids are sampled exactly at pixel centres (consistent with
+        :func:`kpd6d.geometry.project_points`). Ids are coded as colours (255, id & 255, id >> 8).
+        """
+        seg_map = {node: (255, (i + 1) & 255, (i + 1) >> 8) for i, node in enumerate(nodes)}
+        seg, depth = self._renderer.render(scene, flags=self._pyrender.RenderFlags.SEG, seg_node_map=seg_map)
+        seg = seg.astype(np.int64)
+        label = np.where((seg[..., 0] == 255) & (depth > 0), seg[..., 1] + 256 * seg[..., 2], 0)
+        return depth, label
+
     def render(self, instances, *, lighting: Lighting | None = None, K: np.ndarray | None = None,
                full_masks: bool = False, depth_only: bool = False) -> RenderResult:
         """Render ``instances``: a list of ``(mesh_or_model, R, t)`` (R, t: model -> OpenCV camera, mm).
 
         ``mesh_or_model`` is an :class:`~kpd6d.objects.ObjectModel` or a trimesh mesh (distractors).
-        Returns RGB, depth (mm) and per-instance visible masks (one pyrender segmentation pass);
-        ``full_masks=True`` also renders each instance alone for its unoccluded silhouette.
+        Returns RGB (anti-aliased), depth (mm) and per-instance visible masks (both from one
+        segmentation pass, sampled at pixel centres); ``depth_only=True`` skips the colour pass;
+        ``full_masks=True`` also renders each instance alone for its unoccluded silhouette (visib ⊆ full).
         """
         pyrender = self._pyrender
         K = self.K if K is None else np.asarray(K, dtype=np.float64)
@@ -155,25 +170,27 @@ class Renderer:
             node = pyrender.Node(mesh=self._pymesh(mesh, lighting.specular), matrix=cv_pose_to_gl_model_view(R, t))
             scene.add_node(node)
             nodes.append(node)
-        flags = pyrender.RenderFlags.DEPTH_ONLY if depth_only else pyrender.RenderFlags.NONE
-        out = self._renderer.render(scene, flags=flags)
         if depth_only:
-            rgb, depth = np.zeros((self.height, self.width, 3), np.uint8), out
+            rgb = np.zeros((self.height, self.width, 3), np.uint8)
         else:
-            rgb, depth = out
-        seg_map = {node: (i + 1, 0, 0) for i, node in enumerate(nodes)}
-        masks_visib: list[np.ndarray] = []
+            rgb, _ = self._renderer.render(scene, flags=pyrender.RenderFlags.NONE)
         if nodes:
-            seg, _ = self._renderer.render(scene, flags=pyrender.RenderFlags.SEG, seg_node_map=seg_map)
-            label = seg[..., 0]
-            masks_visib = [label == (i + 1) for i in range(len(nodes))]
+            depth, label = self._seg_pass(scene, nodes)
+        else:
+            depth, label = np.zeros((self.height, self.width), np.float32), None
+        masks_visib = [label == (i + 1) for i in range(len(nodes))]
         masks_full: list[np.ndarray] = []
         if full_masks:
-            for node in nodes:
+            if len(nodes) == 1:
+                masks_full = [masks_visib[0].copy()]
+            else:
+                for node in nodes:
+                    for other in nodes:
+                        other.mesh.is_visible = other is node
+                    _, lab = self._seg_pass(scene, nodes)
+                    masks_full.append(lab > 0)
                 for other in nodes:
-                    other.mesh.is_visible = other is node
-                d = self._renderer.render(scene, flags=pyrender.RenderFlags.DEPTH_ONLY)
-                masks_full.append(d > 0)
-            for other in nodes:
-                other.mesh.is_visible = True
+                    other.mesh.is_visible = True
+            # the same rasterisation: a pixel centre covered by a front instance is covered by it alone
+            masks_visib = [v & f for v, f in zip(masks_visib, masks_full)]
         return RenderResult(np.ascontiguousarray(rgb[..., :3]), depth.astype(np.float32), masks_visib, masks_full)

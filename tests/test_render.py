@@ -1,0 +1,112 @@
+"""Renderer: silhouettes agree with geometry.project_points, depth with the pose, masks are consistent."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+from matplotlib.path import Path
+from scipy.spatial import ConvexHull
+
+from kpd6d.geometry import LINEMOD_K, pose_from_view, project_points, transform_points
+from kpd6d.objects import procedural_objects
+from kpd6d.render import Renderer
+
+
+@pytest.fixture(scope="module")
+def renderer():
+    r = Renderer(320, 240, LINEMOD_K * np.array([[0.5], [0.5], [1.0]]))
+    yield r
+    r.close()
+
+
+@pytest.fixture(scope="module")
+def objs():
+    return procedural_objects(obj_ids=[1, 3, 4, 5])
+
+
+def _mask_bbox(mask):
+    ys, xs = np.nonzero(mask)
+    return np.array([xs.min(), ys.min(), xs.max(), ys.max()], dtype=float)
+
+
+@pytest.mark.parametrize("view", [(0.3, 0.5, 700.0, 0.0), (2.1, -0.4, 600.0, 0.6), (4.4, 1.1, 800.0, -1.2)])
+def test_silhouette_matches_projected_vertices(renderer, objs, view):
+    K = renderer.K
+    R, t = pose_from_view(*view)
+    t = t + np.array([25.0, -15.0, 0.0])  # off-centre as well
+    for m in objs:
+        res = renderer.render([(m, R, t)])
+        uv = project_points(m.vertices, K, R, t)
+        lo, hi = uv.min(axis=0), uv.max(axis=0)
+        box = _mask_bbox(res.masks_visib[0])
+        # no silhouette pixel centre outside the projection's extent (pixel centres at integers)
+        assert (box[:2] >= lo - 1e-6).all() and (box[2:] <= hi + 1e-6).all(), (m.name, box, lo, hi)
+        # the box of pixel centres inside the projected convex hull (independent rasterisation)
+        hull = Path(uv[ConvexHull(uv).vertices])
+        xs, ys = np.meshgrid(np.arange(np.floor(lo[0]) - 1, np.ceil(hi[0]) + 2),
+                             np.arange(np.floor(lo[1]) - 1, np.ceil(hi[1]) + 2))
+        centres = np.c_[xs.ravel(), ys.ravel()]
+        inside = centres[hull.contains_points(centres)]
+        expected = np.r_[inside.min(0), inside.max(0)]
+        assert np.abs(box - expected).max() <= 1.0, (m.name, box, expected)
+        # every vertex projecting well inside the image lands on (or within 1 px of) the mask
+        inside = (uv > 2).all(1) & (uv[:, 0] < renderer.width - 3) & (uv[:, 1] < renderer.height - 3)
+        ij = np.rint(uv[inside]).astype(int)
+        dil = cv2.dilate(res.masks_visib[0].astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+        assert dil[ij[:, 1], ij[:, 0]].all()
+
+
+def test_depth_matches_ray_casting(renderer, objs):
+    """Depth at pixel centres equals the first hit of the ray through that pixel centre (trimesh)."""
+    m = objs[1]
+    R, t = pose_from_view(1.0, 0.7, 650.0, inplane=0.3)
+    res = renderer.render([(m, R, t)])
+    ys, xs = np.nonzero(res.masks_visib[0])
+    pick = np.random.default_rng(0).choice(len(xs), 60, replace=False)
+    uv = np.c_[xs[pick], ys[pick]].astype(float)
+    rays_cam = np.c_[(uv - renderer.K[:2, 2]) / np.diag(renderer.K)[:2], np.ones(len(uv))]
+    eye = -R.T @ t
+    dirs = rays_cam @ R  # camera -> model frame directions (R^T d)
+    locs, idx, _ = m.mesh.ray.intersects_location(np.repeat(eye[None], len(uv), 0), dirs, multiple_hits=False)
+    assert len(idx) >= 0.95 * len(uv)  # (a few grazing rays may miss the tessellated surface)
+    z_hit = transform_points(locs, R, t)[:, 2]
+    z_ren = res.depth[ys[pick][idx], xs[pick][idx]]
+    err = np.abs(z_hit - z_ren)
+    assert np.median(err) < 0.2 and (err < 2.0).mean() > 0.95, err.max()
+    # background pixels have no depth, and the lit texture shows
+    assert (res.depth[~res.masks_visib[0]] == 0).all()
+    assert res.rgb.dtype == np.uint8 and res.rgb[res.masks_visib[0]].mean() > 20
+
+
+def test_masks_visib_subset_of_full_with_occlusion(renderer, objs):
+    R, t = pose_from_view(0.8, 0.5, 700.0)
+    insts = [(m, R, t + np.array([dx, dy, dz])) for m, (dx, dy, dz) in
+             zip(objs, [(-60, 0, 0), (60, 20, 250), (200, -60, 500), (-30, 30, -250)])]
+    res = renderer.render(insts, full_masks=True)
+    union = np.zeros_like(res.depth, dtype=bool)
+    for i, (v, f) in enumerate(zip(res.masks_visib, res.masks_full)):
+        assert v.sum() > 0
+        assert not (v & ~f).any(), f"instance {i}: visib pixels outside full"
+        assert not (union & v).any(), "visible masks overlap"
+        union |= v
+        solo = renderer.render([insts[i]])
+        assert np.array_equal(f, solo.depth > 0)  # full mask = silhouette of the instance alone
+    # the visible masks cover the rendered object pixels except anti-aliased boundaries
+    assert (res.depth > 0).sum() - union.sum() < 0.03 * union.sum()
+    assert (union <= (res.depth > 0)).all()
+    # occlusion: the nearest instance (last one, 250 mm closer) is fully visible
+    assert res.masks_visib[3].sum() >= 0.97 * res.masks_full[3].sum()
+    assert any(0 < v.sum() < 0.9 * f.sum() for v, f in zip(res.masks_visib, res.masks_full))  # real occlusion
+
+
+def test_masks_without_full_are_consistent(renderer, objs):
+    R, t = pose_from_view(2.5, 0.3, 700.0)
+    insts = [(objs[0], R, t), (objs[1], R, t + np.array([30.0, 0.0, 80.0]))]
+    res = renderer.render(insts)
+    assert res.masks_full == []
+    a, b = res.masks_visib
+    assert not (a & b).any() and a.sum() > 0 and b.sum() > 0
+    one = renderer.render([insts[0]], full_masks=True)
+    assert np.array_equal(one.masks_visib[0], one.depth > 0)
+    assert np.array_equal(one.masks_full[0], one.masks_visib[0])

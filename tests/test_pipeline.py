@@ -149,3 +149,12 @@ def test_bad_inputs_are_named():
         PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt), top_l=3)
     with pytest.raises(PipelineInputError, match="predict_keypoints"):
         PosePipeline(DETECTORS.build("oracle"), object())
+
+
+def test_benchmark_pipeline_runs_and_prints_stages(capsys):
+    from kpd6d.benchmarks.pipeline import main
+
+    assert main(["--configs", "fast", "--batch-sizes", "1", "--repeats", "1", "--warmup", "0", "--objects", "1",
+                 "--keypoints", "8", "--top-l", "6", "--device", "cpu"]) == 0
+    out = capsys.readouterr().out
+    assert "| fast | cpu | 1 | 1 |" in out and "detect ms" in out and "25 fps" in out

@@ -1,0 +1,165 @@
+"""``kpd6d-benchmark pipeline``: time per stage (detect, crop, KPD, decode, PnP) and end-to-end fps.
+
+Untrained weights (timing only), 640x480 images, ``--objects`` boxes per image (fixed boxes, so the
+number of KPD crops does not depend on what an untrained detector finds; the detector still runs on
+the full images). Configurations:
+
+* ``paper``: KPD resnet101 + deconv head (256 ch), 256x256 crops, 50 keypoints, EPnP on the top-10;
+  CenterNet resnet18 detector at 320x240.
+* ``fast``: KPD resnet18 + deconv head (64 ch), 128x128 crops, 50 keypoints, EPnP on the top-10;
+  CenterNet resnet10t detector at 256x192.
+
+Each batch size is timed ``--repeats`` times after ``--warmup`` runs; the median is reported.
+End-to-end = the sum of the stages (the same work ``PosePipeline.predict_batch`` does).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import platform
+import statistics
+import time
+
+import numpy as np
+import torch
+
+CONFIGS = {
+    "paper": {"backbone": {"name": "resnet101"}, "head": {"name": "deconv", "deconv_channels": 256}, "input_size": 256,
+              "detector": {"name": "centernet", "backbone": "resnet18", "neck_channels": 64, "head_channels": 64,
+                           "input_size": [320, 240]}},
+    "fast": {"backbone": {"name": "resnet18"}, "head": {"name": "deconv", "deconv_channels": 64}, "input_size": 128,
+             "detector": {"name": "centernet", "backbone": "resnet10t", "neck_channels": 48, "head_channels": 48,
+                          "input_size": [256, 192]}},
+}
+STAGES = ("detect", "crop", "kpd", "decode", "pnp")
+
+
+def _sync(device):
+    if device.type == "cuda":
+        torch.cuda.synchronize()
+
+
+def build(config: str, num_keypoints: int, num_objects: int, device):
+    from kpd6d.detection import build_detector
+    from kpd6d.kpd.module import KPDModule
+
+    c = CONFIGS[config]
+    rng = np.random.default_rng(0)
+    obj_ids = list(range(1, num_objects + 1))
+    kpd = KPDModule(obj_ids=obj_ids, keypoints_3d=[rng.uniform(-50, 50, (num_keypoints, 3)) for _ in obj_ids],
+                    diameters=[150.0] * num_objects, backbone=c["backbone"], head=c["head"],
+                    input_size=c["input_size"], out_stride=4).to(device).eval()
+    det = build_detector(**{**c["detector"], "obj_ids": obj_ids}).to(device).eval()
+    return det, kpd
+
+
+@torch.no_grad()
+def time_batch(det, kpd, pnp, images, boxes, image_index, obj_ids, K, top_l, device) -> dict[str, float]:
+    """Seconds per stage for one batch."""
+    from kornia.geometry.transform import warp_affine
+
+    from kpd6d.geometry import affine_apply, box_to_crop_affine, invert_affine
+    from kpd6d.kpd.select import top_l as select_top_l
+
+    t = {}
+    _sync(device)
+    t0 = time.perf_counter()
+    det.predict(images)
+    _sync(device)
+    t1 = time.perf_counter()
+    S = kpd.hparams.input_size
+    A = box_to_crop_affine(boxes.double(), S, scale=kpd.hparams.crop_scale)
+    crops = warp_affine(images[image_index], A.float(), (S, S), align_corners=True)
+    _sync(device)
+    t2 = time.perf_counter()
+    heat = kpd(crops, kpd.obj_indices(obj_ids))
+    _sync(device)
+    t3 = time.perf_counter()
+    kp_crop, conf = kpd.decode(heat)
+    kp_img = affine_apply(invert_affine(A), kp_crop.double())
+    _sync(device)
+    t4 = time.perf_counter()
+    idx = select_top_l(conf, top_l).cpu().numpy()
+    kp = kp_img.cpu().numpy()
+    k3 = np.stack([kpd.keypoints_3d[int(o)] for o in obj_ids.tolist()])
+    rows = np.arange(len(idx))[:, None]
+    pnp.solve_batch(k3[rows, idx], kp[rows, idx], K, None)
+    t5 = time.perf_counter()
+    t.update(detect=t1 - t0, crop=t2 - t1, kpd=t3 - t2, decode=t4 - t3, pnp=t5 - t4)
+    return t
+
+
+def run(config: str, batch_sizes, num_objects: int, num_keypoints: int, top_l: int, repeats: int, warmup: int,
+        device) -> list[dict]:
+    from kpd6d.geometry import LINEMOD_K
+    from kpd6d.registry import PNP_SOLVERS
+
+    det, kpd = build(config, num_keypoints, num_objects, device)
+    pnp = PNP_SOLVERS.build("epnp")
+    rows = []
+    for B in batch_sizes:
+        g = torch.Generator().manual_seed(0)
+        images = torch.rand(B, 3, 480, 640, generator=g).to(device)
+        xy = torch.rand(B * num_objects, 2, generator=g) * torch.tensor([480.0, 340.0])
+        wh = 60 + torch.rand(B * num_objects, 2, generator=g) * 80
+        boxes = torch.cat([xy, wh], 1).to(device)
+        image_index = torch.arange(B).repeat_interleave(num_objects).to(device)
+        obj_ids = torch.arange(1, num_objects + 1).repeat(B).to(device)
+        K = np.broadcast_to(LINEMOD_K, (B * num_objects, 3, 3))
+        runs = []
+        for i in range(warmup + repeats):
+            r = time_batch(det, kpd, pnp, images, boxes, image_index, obj_ids, K, top_l, device)
+            if i >= warmup:
+                runs.append(r)
+        med = {s: statistics.median(r[s] for r in runs) for s in STAGES}
+        total = sum(med.values())
+        rows.append({"config": config, "batch": B, "objects_per_image": num_objects, "device": str(device),
+                     **{f"{s}_ms_per_image": 1000 * med[s] / B for s in STAGES},
+                     "total_ms_per_image": 1000 * total / B, "fps": B / total})
+    return rows
+
+
+def format_table(rows: list[dict]) -> str:
+    head = "| config | device | batch | objects/img | " + " | ".join(f"{s} ms" for s in STAGES) + " | total ms | fps |"
+    lines = [head, "|" + "---|" * (len(STAGES) + 6)]
+    for r in rows:
+        lines.append(f"| {r['config']} | {r['device']} | {r['batch']} | {r['objects_per_image']} | "
+                     + " | ".join(f"{r[f'{s}_ms_per_image']:.1f}" for s in STAGES)
+                     + f" | {r['total_ms_per_image']:.1f} | {r['fps']:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    p = argparse.ArgumentParser(prog="kpd6d-benchmark pipeline", description=__doc__.strip().splitlines()[0])
+    p.add_argument("--configs", default="fast,paper", help=f"comma-separated, of {', '.join(CONFIGS)}")
+    p.add_argument("--batch-sizes", default="1,4", help="comma-separated images per batch")
+    p.add_argument("--objects", type=int, default=3, help="objects (KPD crops) per image")
+    p.add_argument("--keypoints", type=int, default=50)
+    p.add_argument("--top-l", type=int, default=10)
+    p.add_argument("--repeats", type=int, default=3)
+    p.add_argument("--warmup", type=int, default=1)
+    p.add_argument("--device", default="auto", help="auto (cuda when available), cpu or cuda")
+    p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--json", default=None, help="also write the rows as JSON here")
+    args = p.parse_args(argv)
+    unknown = [c for c in args.configs.split(",") if c not in CONFIGS]
+    if unknown:
+        p.error(f"unknown config(s) {unknown}; known: {', '.join(CONFIGS)}")
+    if args.threads:
+        torch.set_num_threads(args.threads)
+    device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
+                          ("cpu" if args.device == "auto" else args.device))
+    sizes = [int(b) for b in args.batch_sizes.split(",")]
+    rows = []
+    for c in args.configs.split(","):
+        rows += run(c, sizes, args.objects, args.keypoints, args.top_l, args.repeats, args.warmup, device)
+    dev_name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{platform.processor() or 'cpu'}, {torch.get_num_threads()} threads"
+    print(f"device: {dev_name}; {args.objects} objects/image, {args.keypoints} keypoints, top-{args.top_l}, EPnP; "
+          f"median of {args.repeats} runs; untrained weights")
+    print(format_table(rows))
+    print("paper (KPD, ResNet-101, GTX 1080 Ti): 25 fps")
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(rows, f, indent=2)
+    return 0

@@ -54,6 +54,8 @@ def diagnose_inputs(
     reasons = [""] * B
 
     def fail(mask: np.ndarray, make) -> None:
+        if not mask.any():
+            return
         for i in np.flatnonzero(mask):
             if not reasons[i]:
                 reasons[i] = make(i)

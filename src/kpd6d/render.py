@@ -53,7 +53,7 @@ class RenderResult:
     rgb: np.ndarray  # (H, W, 3) uint8; background black
     depth: np.ndarray  # (H, W) float32 mm, 0 where nothing
     masks_visib: list[np.ndarray]  # per instance (H, W) bool: visible pixels
-    masks_full: list[np.ndarray]  # per instance (H, W) bool: silhouette ignoring occluders (if asked)
+    masks_full: list[np.ndarray | None]  # per instance (H, W) bool: silhouette ignoring occluders (if asked)
 
 
 def _look_rotation(direction) -> np.ndarray:
@@ -93,7 +93,9 @@ class Renderer:
                 f"cannot create a headless OpenGL context (PYOPENGL_PLATFORM={os.environ.get('PYOPENGL_PLATFORM')}): "
                 f"{exc}. On Debian/Ubuntu install libegl1 and libgl1-mesa-dri (Mesa's EGL) or an NVIDIA driver."
             ) from exc
-        self._cache: dict[tuple[int, float], object] = {}
+        # id(trimesh) -> (pyrender mesh, trimesh (kept alive so the id stays unique), base roughness
+        # per primitive). Cached meshes stay uploaded to the GL context (see ``render``).
+        self._cache: dict[int, tuple] = {}
 
     def close(self) -> None:
         if getattr(self, "_renderer", None) is not None:
@@ -116,24 +118,28 @@ class Renderer:
         )
 
     def _pymesh(self, mesh, specular: float):
-        key = (id(mesh), round(specular, 2))
-        pm = self._cache.get(key)
-        if pm is None:
-            # keep pyrender's own material (it carries the vertex colours / texture; passing a
-            # material to from_trimesh would drop them) and only change its shininess
-            pm = self._pyrender.Mesh.from_trimesh(mesh, smooth=False)
-            if specular > 0:
-                for prim in pm.primitives:
-                    mat = prim.material
-                    if hasattr(mat, "roughnessFactor"):
-                        mat.roughnessFactor = max(0.05, 0.8 - specular)  # pyrender's default is 0.8
-            if len(self._cache) > 256:
-                self._cache.clear()
-            self._cache[key] = (pm, mesh)  # keep mesh alive so id() stays unique
-            return pm
-        return pm[0]
+        """The cached pyrender mesh of ``mesh`` with its shininess set for ``specular``.
 
-    def _seg_pass(self, scene, nodes):
+        pyrender's own material is kept (it carries the vertex colours / texture; passing a material
+        to ``from_trimesh`` would drop them); only its roughness changes, in place (a uniform, so no
+        re-upload): ``roughness = max(0.05, base - specular)`` (pyrender's base is 0.8).
+        """
+        entry = self._cache.get(id(mesh))
+        if entry is None:
+            pm = self._pyrender.Mesh.from_trimesh(mesh, smooth=False)
+            base = [getattr(p.material, "roughnessFactor", None) for p in pm.primitives]
+            if len(self._cache) >= 256:
+                self._cache.clear()  # unused meshes then leave the GL context on the next render
+            entry = self._cache[id(mesh)] = (pm, mesh, base)
+        pm, _, base = entry
+        for prim, r0 in zip(pm.primitives, base):
+            if r0 is not None:
+                rough = max(0.05, r0 - specular) if specular > 0 else r0
+                if prim.material.roughnessFactor != rough:
+                    prim.material.roughnessFactor = rough
+        return pm
+
+    def _seg_pass(self, scene, nodes, only=None):
         """Depth (mm) and per-pixel instance ids (0: none) from pyrender's segmentation pass.
 
         pyrender renders colour with 4x multisampling, and its depth read-back then picks one
@@ -141,20 +147,22 @@ class Renderer:
         so its depth and ids are sampled exactly at pixel centres (consistent with
         :func:`kpd6d.geometry.project_points`). Ids are coded as colours (255, id & 255, id >> 8).
         """
-        seg_map = {node: (255, (i + 1) & 255, (i + 1) >> 8) for i, node in enumerate(nodes)}
+        seg_map = {node: (255, (i + 1) & 255, (i + 1) >> 8) for i, node in enumerate(nodes)
+                   if only is None or i == only}  # pyrender's SEG pass draws only mapped nodes
         seg, depth = self._renderer.render(scene, flags=self._pyrender.RenderFlags.SEG, seg_node_map=seg_map)
         seg = seg.astype(np.int64)
         label = np.where((seg[..., 0] == 255) & (depth > 0), seg[..., 1] + 256 * seg[..., 2], 0)
         return depth, label
 
     def render(self, instances, *, lighting: Lighting | None = None, K: np.ndarray | None = None,
-               full_masks: bool = False, depth_only: bool = False) -> RenderResult:
+               full_masks: bool | Sequence[int] = False, depth_only: bool = False) -> RenderResult:
         """Render ``instances``: a list of ``(mesh_or_model, R, t)`` (R, t: model -> OpenCV camera, mm).
 
         ``mesh_or_model`` is an :class:`~kpd6d.objects.ObjectModel` or a trimesh mesh (distractors).
         Returns RGB (anti-aliased), depth (mm) and per-instance visible masks (both from one
         segmentation pass, sampled at pixel centres); ``depth_only=True`` skips the colour pass;
-        ``full_masks=True`` also renders each instance alone for its unoccluded silhouette (visib ⊆ full).
+        ``full_masks=True`` also renders each instance alone for its unoccluded silhouette (visib ⊆ full);
+        a sequence of instance indices renders only those (``masks_full`` holds None for the others).
         """
         pyrender = self._pyrender
         K = self.K if K is None else np.asarray(K, dtype=np.float64)
@@ -170,6 +178,13 @@ class Renderer:
             node = pyrender.Node(mesh=self._pymesh(mesh, lighting.specular), matrix=cv_pose_to_gl_model_view(R, t))
             scene.add_node(node)
             nodes.append(node)
+        # keep every cached mesh in the GL context: pyrender deletes the buffers of meshes missing from
+        # the scene and re-uploads them when they come back; invisible nodes hold them at no draw cost
+        used = {id(n.mesh) for n in nodes}
+        for pm, _, _ in self._cache.values():
+            pm.is_visible = id(pm) in used
+            if id(pm) not in used:
+                scene.add_node(pyrender.Node(mesh=pm))
         if depth_only:
             rgb = np.zeros((self.height, self.width, 3), np.uint8)
         else:
@@ -179,18 +194,16 @@ class Renderer:
         else:
             depth, label = np.zeros((self.height, self.width), np.float32), None
         masks_visib = [label == (i + 1) for i in range(len(nodes))]
-        masks_full: list[np.ndarray] = []
-        if full_masks:
-            if len(nodes) == 1:
-                masks_full = [masks_visib[0].copy()]
-            else:
-                for node in nodes:
-                    for other in nodes:
-                        other.mesh.is_visible = other is node
-                    _, lab = self._seg_pass(scene, nodes)
-                    masks_full.append(lab > 0)
-                for other in nodes:
-                    other.mesh.is_visible = True
-            # the same rasterisation: a pixel centre covered by a front instance is covered by it alone
-            masks_visib = [v & f for v, f in zip(masks_visib, masks_full)]
+        masks_full: list[np.ndarray | None] = []
+        if full_masks is not False and full_masks is not None and nodes:
+            wanted = range(len(nodes)) if full_masks is True else sorted({int(i) for i in full_masks})
+            masks_full = [None] * len(nodes)
+            for i in wanted:
+                if len(nodes) == 1:
+                    masks_full[i] = masks_visib[i].copy()
+                else:  # a segmentation pass drawing this instance alone (same rasterisation)
+                    _, lab = self._seg_pass(scene, nodes, only=i)
+                    masks_full[i] = lab > 0
+                # a pixel centre covered by a front instance is covered by it alone
+                masks_visib[i] = masks_visib[i] & masks_full[i]
         return RenderResult(np.ascontiguousarray(rgb[..., :3]), depth.astype(np.float32), masks_visib, masks_full)

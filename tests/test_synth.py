@@ -64,7 +64,7 @@ def test_layout_and_files(dataset):
     gt = load_scene_gt(dataset / "train" / "000002" / "scene_gt.json")
     assert sorted(gt) == [0, 1, 2, 3]
     for name in ("camera.json", "dataset_info.json", "models/models_info.json", "models/obj_000001.ply",
-                 "models/obj_000002.ply", "train/000000/rgb/000004.png", "train/000000/depth/000004.png",
+                 "models/obj_000002.ply", "train/000000/rgb/000004.jpg", "train/000000/depth/000004.png",
                  "train/000000/mask_visib/000004_000000.png"):
         assert (dataset / name).is_file(), name
     assert not list(dataset.rglob("*.tmp"))
@@ -220,7 +220,7 @@ def test_same_seed_same_bytes_other_seed_differs(tmp_path, models_dir, reference
     assert tree_bytes(tmp_path / "a") == reference
     generate_dataset(tmp_path / "b", models_dir, **{**_RUN, "seed": 4})
     other = tree_bytes(tmp_path / "b")
-    assert other["train/000000/rgb/000000.png"] != reference["train/000000/rgb/000000.png"]
+    assert other["train/000000/rgb/000000.jpg"] != reference["train/000000/rgb/000000.jpg"]
     assert other["train/000000/scene_gt.json"] != reference["train/000000/scene_gt.json"]
 
 
@@ -228,12 +228,12 @@ def test_resume_after_lost_files_and_unrecorded_images(tmp_path, models_dir, ref
     root = tmp_path / "r"
     generate_dataset(root, models_dir, **_RUN)
     sd = root / "train" / "000000"
-    (sd / "rgb" / "000001.png").unlink()  # an image file lost
+    (sd / "rgb" / "000001.jpg").unlink()  # an image file lost
     (sd / "mask_visib" / "000002_000000.png").unlink()
     gt = json.loads((sd / "scene_gt.json").read_text())  # an image not yet recorded
     del gt["3"]
     (sd / "scene_gt.json").write_text(json.dumps(gt))
-    (sd / "rgb" / ".000003.png.abc.tmp").write_bytes(b"half-written")  # debris of a killed writer
+    (sd / "rgb" / ".000003.jpg.abc.tmp").write_bytes(b"half-written")  # debris of a killed writer
     generate_dataset(root, models_dir, **_RUN)
     assert tree_bytes(root) == reference
 
@@ -276,7 +276,7 @@ def test_killed_run_resumes_and_workers_do_not_change_result(tmp_path, models_di
         "from synth_helpers import SMALL\n"
         "from kpd6d.synth import generate_dataset\n"
         "if __name__ == '__main__':\n"
-        f"    generate_dataset({str(root)!r}, {str(models_dir)!r}, workers=2, num_images=400, seed=3, progress=False,"
+        f"    generate_dataset({str(root)!r}, {str(models_dir)!r}, workers=2, num_images=120, seed=3, progress=False,"
         " distractors=(1, 1), scene_size=4, **SMALL)\n"
     )
     script = tmp_path / "run.py"
@@ -290,8 +290,8 @@ def test_killed_run_resumes_and_workers_do_not_change_result(tmp_path, models_di
     os.killpg(proc.pid, signal.SIGKILL)
     proc.wait()
     n_done = sum(len(load_scene_gt(p)) for p in root.glob("train/*/scene_gt.json"))
-    assert 0 < n_done < 400
-    generate_dataset(root, models_dir, workers=2, **{**_RUN, "num_images": 400})
+    assert 0 < n_done < 120
+    generate_dataset(root, models_dir, workers=2, **{**_RUN, "num_images": 120})
     got = tree_bytes(root)
     # the first 6 images are the single-process reference's, byte for byte (scene 0 whole, JSON included)
     compared = [n for n in reference if n.startswith(("train/000000/", "train/000001/rgb/", "train/000001/mask_visib/"))]
@@ -299,7 +299,7 @@ def test_killed_run_resumes_and_workers_do_not_change_result(tmp_path, models_di
     for name in compared:
         assert got[name] == reference[name], name
     ds = BopDataset(root, "train")
-    assert len(ds) == 400
+    assert len(ds) == 120
     assert not list(root.rglob("*.tmp"))
 
 
@@ -317,12 +317,12 @@ def test_resume_refuses_other_settings(tmp_path, models_dir):
 # ---------------------------------------------------------------------------------------------
 # options
 # ---------------------------------------------------------------------------------------------
-def test_all_objects_jpg_no_photometric(tmp_path, models_dir):
+def test_all_objects_png_no_photometric(tmp_path, models_dir):
     generate_dataset(tmp_path, models_dir, num_images=2, progress=False, objects_per_image="all", distractors=(0, 0),
-                     rgb_format="jpg", photometric={"prob": 0.0}, **SMALL)
+                     rgb_format="png", photometric={"prob": 0.0}, **SMALL)
     ds = BopDataset(tmp_path, "train")
     assert [sorted(i.obj_id for i in f.instances) for f in ds] == [[1, 2], [1, 2]]
-    assert ds[0].rgb_path.suffix == ".jpg"
+    assert ds[0].rgb_path.suffix == ".png"
     assert ds[0].load_rgb().shape == (120, 160, 3)
 
 
@@ -333,7 +333,7 @@ def test_backgrounds_folder_is_used(tmp_path, models_dir):
     (bgs / "sub").mkdir(parents=True)
     cv2.imwrite(str(bgs / "sub" / "red.png"), np.full((50, 90, 3), (0, 0, 255), np.uint8))  # BGR red
     generate_dataset(tmp_path / "d", models_dir, num_images=2, progress=False, distractors=(0, 0),
-                     backgrounds_dir=str(bgs), photometric={"prob": 0.0}, feather_sigma=0.0, **SMALL)
+                     backgrounds_dir=str(bgs), photometric={"prob": 0.0}, feather_sigma=0.0, rgb_format="png", **SMALL)
     f = BopDataset(tmp_path / "d", "train")[0]
     rgb = f.load_rgb()
     bg = ~f.load_mask_visib(0)

@@ -31,15 +31,17 @@ def _random_color(rng: np.random.Generator) -> tuple[int, int, int]:
 
 
 def _gradient(rng, w, h):
-    c0, c1 = rng.uniform(0, 255, 3), rng.uniform(0, 255, 3)
+    c0, c1 = rng.uniform(0, 255, 3).astype(np.float32), rng.uniform(0, 255, 3).astype(np.float32)
+    xs = np.linspace(-1, 1, w, dtype=np.float32)[None, :]
+    ys = np.linspace(-1, 1, h, dtype=np.float32)[:, None]
     if rng.random() < 0.5:  # linear
         a = rng.uniform(0, 2 * np.pi)
-        xs = np.cos(a) * np.linspace(-1, 1, w)[None, :] + np.sin(a) * np.linspace(-1, 1, h)[:, None]
+        s = np.float32(np.cos(a)) * xs + np.float32(np.sin(a)) * ys
     else:  # radial
-        cx, cy = rng.uniform(-0.5, 0.5, 2)
-        xs = np.hypot(np.linspace(-1, 1, w)[None, :] - cx, np.linspace(-1, 1, h)[:, None] - cy)
-    s = (xs - xs.min()) / max(np.ptp(xs), 1e-6)
-    return (c0 + s[..., None] * (c1 - c0)).astype(np.float32)
+        cx, cy = rng.uniform(-0.5, 0.5, 2).astype(np.float32)
+        s = np.sqrt((xs - cx) ** 2 + (ys - cy) ** 2)
+    s = (s - s.min()) / max(float(np.ptp(s)), 1e-6)
+    return c0 + s[..., None] * (c1 - c0)
 
 
 def _noise(rng, w, h):
@@ -50,30 +52,33 @@ def _noise(rng, w, h):
     base = int(rng.integers(2, 8))
     for octave in range(4):
         n = base * 2**octave
-        small = rng.random((max(2, n * h // w), n, 3)).astype(np.float32)
-        out += amp * cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
+        small = rng.random((max(2, n * h // w), n, 3), dtype=np.float32)
+        out += np.float32(amp) * cv2.resize(small, (w, h), interpolation=cv2.INTER_CUBIC)
         total += amp
         amp *= rng.uniform(0.35, 0.65)
-    out /= total
-    lo, hi = rng.uniform(0, 255, 3), rng.uniform(0, 255, 3)
-    return np.clip(lo + out * (hi - lo), 0, 255).astype(np.float32)
+    out *= np.float32(1.0 / total)
+    lo, hi = rng.uniform(0, 255, 3).astype(np.float32), rng.uniform(0, 255, 3).astype(np.float32)
+    return lo + out * (hi - lo)
 
 
 def _texture(rng, w, h):
+    """Stripes (sine or square) or a checkerboard at a random angle; ``w, h`` is the working size
+    (half the output), periods are given in it."""
     import cv2
 
-    period = rng.uniform(4, 60)
+    period = rng.uniform(2, 30)
     a = rng.uniform(0, np.pi)
-    yy, xx = np.mgrid[0:h, 0:w].astype(np.float32)
-    u = np.cos(a) * xx + np.sin(a) * yy
+    xs = np.arange(w, dtype=np.float32)[None, :]
+    ys = np.arange(h, dtype=np.float32)[:, None]
+    u = np.float32(np.cos(a)) * xs + np.float32(np.sin(a)) * ys
     if rng.random() < 0.5:  # stripes
-        s = (0.5 + 0.5 * np.sin(2 * np.pi * u / period)) if rng.random() < 0.5 else ((u // period) % 2)
+        s = (0.5 + 0.5 * np.sin(np.float32(2 * np.pi / period) * u)) if rng.random() < 0.5 else (u // period) % 2
     else:  # checkerboard
-        v = -np.sin(a) * xx + np.cos(a) * yy
-        s = ((u // period + v // period) % 2).astype(np.float32)
-    s = cv2.GaussianBlur(s.astype(np.float32), (0, 0), rng.uniform(0.3, 2.0))
-    c0, c1 = rng.uniform(0, 255, 3), rng.uniform(0, 255, 3)
-    return (c0 + s[..., None] * (c1 - c0)).astype(np.float32)
+        v = np.float32(-np.sin(a)) * xs + np.float32(np.cos(a)) * ys
+        s = (u // period + v // period) % 2
+    s = cv2.GaussianBlur(s.astype(np.float32), (0, 0), rng.uniform(0.3, 1.0))
+    c0, c1 = rng.uniform(0, 255, 3).astype(np.float32), rng.uniform(0, 255, 3).astype(np.float32)
+    return c0 + s[..., None] * (c1 - c0)
 
 
 def _shapes(rng, img, count, max_size):
@@ -104,23 +109,26 @@ def procedural_background(rng: np.random.Generator, width: int, height: int) -> 
     """One procedural RGB uint8 background (height, width, 3)."""
     import cv2
 
+    # the base is made at half resolution and upsampled (smooth patterns; 4x fewer pixels to compute)
+    hw, hh = max(2, (width + 1) // 2), max(2, (height + 1) // 2)
     kind = rng.integers(0, 3)
-    base = (_gradient, _noise, _texture)[kind](rng, width, height)
+    base = (_gradient, _noise, _texture)[kind](rng, hw, hh)
     if rng.random() < 0.5:  # blend two bases for more variety
-        other = (_gradient, _noise, _texture)[rng.integers(0, 3)](rng, width, height)
-        a = rng.uniform(0.2, 0.8)
+        other = (_gradient, _noise, _texture)[rng.integers(0, 3)](rng, hw, hh)
+        a = np.float32(rng.uniform(0.2, 0.8))
         base = a * base + (1 - a) * other
-    img = np.ascontiguousarray(np.clip(base, 0, 255).astype(np.uint8))
+    base = np.clip(base, 0, 255).astype(np.uint8)
+    img = np.ascontiguousarray(cv2.resize(base, (width, height), interpolation=cv2.INTER_LINEAR))
     scale = max(width, height)
     _shapes(rng, img, int(rng.integers(0, 12)), scale // 4)  # large shapes
     _shapes(rng, img, int(rng.integers(0, 60)), max(4, scale // 25))  # clutter
     if rng.random() < 0.5:
         img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.5, 2.0))
     sigma = rng.uniform(0, 8)
-    if sigma > 1:
-        grain = rng.normal(0, sigma, (height // 2 + 1, width // 2 + 1, 1)).astype(np.float32)
-        grain = cv2.resize(grain, (width, height), interpolation=cv2.INTER_NEAREST)[..., None]
-        img = np.clip(img.astype(np.float32) + grain, 0, 255).astype(np.uint8)
+    if sigma > 1:  # grain, 2x2-pixel cells (the composite may get finer noise later)
+        grain = rng.normal(0, sigma, (hh, hw)).astype(np.float32)
+        grain = cv2.resize(grain, (width, height), interpolation=cv2.INTER_NEAREST)
+        img = cv2.add(img, cv2.merge([grain, grain, grain]), dtype=cv2.CV_8U)
     return img
 
 

@@ -69,7 +69,7 @@ class SynthConfig:
     # keypoints
     designator: dict | None = field(default_factory=lambda: {"name": "fps", "num_keypoints": 16})
     # output
-    rgb_format: str = "png"  # png | jpg
+    rgb_format: str = "jpg"  # jpg (as BOP's PBR training sets) | png
     png_compression: int = 1
     jpg_quality: int = 95
     depth: bool = False

@@ -222,11 +222,11 @@ class SceneComposer:
             if v == 0:
                 break
         _, res, instances = best
+        # paste: the union of all rendered silhouettes (objects and occluders); feathering only
+        # softens its inner edge (blends background into the outermost object pixels, no dark halo)
         alpha = (res.depth > 0).astype(np.float32)
         if cfg.feather_sigma > 0:
             alpha = np.minimum(alpha, cv2.GaussianBlur(alpha, (0, 0), cfg.feather_sigma))
-        alpha = alpha[..., None]
-        rgb = (res.rgb.astype(np.float32) * alpha + background.astype(np.float32) * (1.0 - alpha))
-        rgb = np.clip(rgb + 0.5, 0, 255).astype(np.uint8)
+        rgb = cv2.blendLinear(np.ascontiguousarray(res.rgb), background, alpha, 1.0 - alpha)
         rgb = apply_photometric(rgb, rng, self.photometric)
         return SceneSample(rgb=rgb, depth=res.depth, K=self.K.copy(), instances=instances, attempts=attempts)

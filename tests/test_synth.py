@@ -406,3 +406,26 @@ def test_bad_backgrounds_are_named(tmp_path, models_dir):
     (empty / "broken.jpg").write_bytes(b"not a jpeg")
     with pytest.raises(OSError, match=r"broken\.jpg"):
         FolderBackgrounds(empty).sample(np.random.default_rng(0), 32, 24)
+
+
+def test_renderer_antialias_only_changes_colour_edges():
+    import cv2
+
+    from kpd6d.render import Lighting, Renderer
+    from kpd6d.synth.distractors import make_distractor
+
+    mesh = make_distractor(np.random.default_rng(0), 80.0)
+    K = default_K(160, 120)
+    R, t = np.eye(3), np.array([5.0, -3.0, 300.0])
+    out = {}
+    for aa in (True, False):
+        r = Renderer(160, 120, K, antialias=aa)
+        out[aa] = r.render([(mesh, R, t)], lighting=Lighting())
+        r.close()
+    a, b = out[True], out[False]
+    np.testing.assert_array_equal(a.masks_visib[0], b.masks_visib[0])  # masks / depth: same pass
+    np.testing.assert_array_equal(a.depth, b.depth)
+    m = a.masks_visib[0].astype(np.uint8)
+    edge = (cv2.dilate(m, np.ones((3, 3))) - cv2.erode(m, np.ones((3, 3)))) > 0
+    diff = np.abs(a.rgb.astype(int) - b.rgb.astype(int)).sum(-1)
+    assert diff[edge].mean() > 2 * diff[~edge].mean() + 1  # multisampling smooths the silhouette

@@ -7,10 +7,12 @@ OpenCV/BOP convention; :mod:`kpd6d.geometry` does the only OpenCV -> OpenGL conv
 
 from __future__ import annotations
 
+import contextlib
 import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 
 import numpy as np
@@ -56,6 +58,26 @@ class RenderResult:
     masks_full: list[np.ndarray | None]  # per instance (H, W) bool: silhouette ignoring occluders (if asked)
 
 
+@contextlib.contextmanager
+def _multisampling_off():
+    """Make pyrender's colour pass single-sampled: pyrender always enables 4x multisampling there,
+    which Mesa's llvmpipe shades about 2.5x slower. While active, pyrender's
+    ``glEnable(GL_MULTISAMPLE)`` becomes ``glDisable`` (only inside pyrender's module)."""
+    import pyrender.renderer as prr
+    from OpenGL.GL import GL_MULTISAMPLE, glDisable
+
+    orig = prr.glEnable
+
+    def enable(cap):
+        (glDisable if cap == GL_MULTISAMPLE else orig)(cap)
+
+    prr.glEnable = enable
+    try:
+        yield
+    finally:
+        prr.glEnable = orig
+
+
 def _look_rotation(direction) -> np.ndarray:
     """4x4 GL pose whose -z axis points along ``direction`` (given in OpenCV camera frame)."""
     d = np.asarray(direction, dtype=np.float64)
@@ -75,16 +97,19 @@ class Renderer:
     """Renders meshes at OpenCV poses with intrinsics ``K`` into (width, height) images.
 
     One OpenGL context per instance (and per process: create it after forking). Meshes are
-    converted to pyrender once and cached by identity.
+    converted to pyrender once and cached by identity. ``antialias=False`` renders colour without
+    pyrender's 4x multisampling (aliased edges; about 2.5x faster colour passes on llvmpipe).
     """
 
     def __init__(self, width: int = LINEMOD_IMAGE_SIZE[0], height: int = LINEMOD_IMAGE_SIZE[1],
-                 K: np.ndarray = LINEMOD_K, znear: float = 10.0, zfar: float = 20000.0) -> None:
+                 K: np.ndarray = LINEMOD_K, znear: float = 10.0, zfar: float = 20000.0,
+                 antialias: bool = True) -> None:
         import pyrender
 
         self.width, self.height = int(width), int(height)
         self.K = np.asarray(K, dtype=np.float64)
         self.znear, self.zfar = znear, zfar
+        self.antialias = bool(antialias)
         self._pyrender = pyrender
         try:
             self._renderer = pyrender.OffscreenRenderer(self.width, self.height)
@@ -188,7 +213,8 @@ class Renderer:
         if depth_only:
             rgb = np.zeros((self.height, self.width, 3), np.uint8)
         else:
-            rgb, _ = self._renderer.render(scene, flags=pyrender.RenderFlags.NONE)
+            with contextlib.nullcontext() if self.antialias else _multisampling_off():
+                rgb, _ = self._renderer.render(scene, flags=pyrender.RenderFlags.NONE)
         if nodes:
             depth, label = self._seg_pass(scene, nodes)
         else:

@@ -131,7 +131,7 @@ def _init_worker(spec: dict) -> None:
         from kpd6d.symmetry import handler_for_model
 
         handlers = [handler_for_model(m) for m in models]
-    renderer = Renderer(cfg.width, cfg.height, cfg.camera_K())
+    renderer = Renderer(cfg.width, cfg.height, cfg.camera_K(), antialias=cfg.antialias)
     pool = distractor_pool(spec["seed"], cfg.distractor_pool_size) if cfg.distractors[1] > 0 else []
     _STATE.clear()
     _STATE.update(

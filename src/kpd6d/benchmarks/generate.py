@@ -1,0 +1,144 @@
+"""``kpd6d-benchmark generate``: synthetic-data throughput (images/s, writing included).
+
+Generates ``--num-images`` 640x480 images (one target object, one occluder by default) with
+:func:`kpd6d.synth.generate_dataset` into a temporary folder and prints
+
+* ``total``: images / wall time of the whole call (worker start-up, model loading, writing);
+* ``steady``: images / time between the first and the last image written (rgb file times), i.e.
+  the rate once the workers run;
+* a per-stage profile of one process (``--profile``): where the time of one image goes.
+"""
+
+from __future__ import annotations
+
+import argparse
+import os
+import shutil
+import sys
+import tempfile
+import time
+from pathlib import Path
+
+
+def _steady_rate(root: Path, split: str) -> tuple[float, int]:
+    times = sorted(p.stat().st_mtime for p in root.glob(f"{split}/*/rgb/*") if not p.name.startswith("."))
+    if len(times) < 2 or times[-1] <= times[0]:
+        return float("nan"), len(times)
+    return (len(times) - 1) / (times[-1] - times[0]), len(times)
+
+
+def _profile(args) -> None:
+    """Time the stages of one process making images (no pool, no JSON)."""
+    import numpy as np
+
+    from kpd6d.synth import SynthConfig
+    from kpd6d.synth.generate import image_rng
+
+    root = Path(tempfile.mkdtemp(prefix="kpd6d-bench-prof-"))
+    try:
+        from kpd6d.synth import generate_dataset
+
+        opts = _options(args)
+        generate_dataset(root, args.models_dir, num_images=1, workers=1, progress=False, **opts)
+        import kpd6d.synth.generate as gen
+
+        spec = {"root": str(root), "split_dir": str(root / "prof"), "obj_ids": None, "seed": 1,
+                "config": SynthConfig.from_options(opts).to_dict()}
+        gen._init_worker(spec)
+        comp = gen._STATE["composer"]
+        stages = {"background": 0.0, "render (scene + extra silhouette passes)": 0.0, "compose (paste, photometric)": 0.0,
+                  "encode + write": 0.0}
+        renderer = comp.renderer
+        real_render = renderer.render
+
+        def timed_render(*a, **k):
+            t = time.perf_counter()
+            out = real_render(*a, **k)
+            stages["render (scene + extra silhouette passes)"] += time.perf_counter() - t
+            return out
+
+        renderer.render = timed_render
+        real_bg = comp.backgrounds.sample
+
+        def timed_bg(*a, **k):
+            t = time.perf_counter()
+            out = real_bg(*a, **k)
+            stages["background"] += time.perf_counter() - t
+            return out
+
+        comp.backgrounds.sample = timed_bg
+        n = args.profile
+        t_all = time.perf_counter()
+        for i in range(n):
+            t0 = time.perf_counter()
+            before = stages["background"] + stages["render (scene + extra silhouette passes)"]
+            sample = comp.compose(image_rng(1, i))
+            t1 = time.perf_counter()
+            stages["compose (paste, photometric)"] += (t1 - t0) - (
+                stages["background"] + stages["render (scene + extra silhouette passes)"] - before)
+            from kpd6d.data import atomic_write_image
+
+            cfg = gen._STATE["cfg"]
+            sd = root / "prof" / "000000"
+            for j, inst in enumerate(sample.instances):
+                atomic_write_image(sd / "mask_visib" / f"{i:06d}_{j:06d}.png", inst.mask_visib.astype(np.uint8) * 255,
+                                   png_compression=cfg.png_compression)
+            atomic_write_image(sd / "rgb" / f"{i:06d}.{cfg.rgb_format}", sample.rgb, png_compression=cfg.png_compression,
+                               jpg_quality=cfg.jpg_quality)
+            stages["encode + write"] += time.perf_counter() - t1
+        wall = time.perf_counter() - t_all
+        print(f"\nprofile, one process, {n} images: {1000 * wall / n:.1f} ms/image")
+        for k, v in stages.items():
+            print(f"  {k:42s} {1000 * v / n:7.1f} ms")
+        gen._STATE["renderer"].close()
+        gen._STATE.clear()
+    finally:
+        shutil.rmtree(root, ignore_errors=True)
+
+
+def _options(args) -> dict:
+    return dict(width=args.width, height=args.height, objects_per_image=(1, 1),
+                distractors=(args.occluders, args.occluders), rgb_format=args.rgb_format,
+                depth=args.depth, designator=None)
+
+
+def main(argv: list[str] | None = None) -> int:
+    ap = argparse.ArgumentParser(prog="kpd6d-benchmark generate", description=__doc__,
+                                 formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("--num-images", type=int, default=300)
+    ap.add_argument("--workers", type=int, default=0, help="0: all cores")
+    ap.add_argument("--width", type=int, default=640)
+    ap.add_argument("--height", type=int, default=480)
+    ap.add_argument("--occluders", type=int, default=1)
+    ap.add_argument("--rgb-format", default="jpg", choices=["jpg", "png"])
+    ap.add_argument("--depth", action="store_true")
+    ap.add_argument("--models-dir", default=None, help="BOP models folder (default: procedural objects)")
+    ap.add_argument("--out", default=None, help="keep the dataset here (default: a temporary folder, deleted)")
+    ap.add_argument("--profile", type=int, default=0, metavar="N", help="also profile N images in one process")
+    args = ap.parse_args(argv)
+
+    from kpd6d.synth import generate_dataset
+    from kpd6d.synth.generate import resolve_workers
+
+    workers = resolve_workers(args.workers)
+    root = Path(args.out) if args.out else Path(tempfile.mkdtemp(prefix="kpd6d-bench-gen-"))
+    if args.out and root.exists() and any(root.iterdir()):
+        print(f"kpd6d-benchmark generate: --out {root} is not empty", file=sys.stderr)
+        return 2
+    try:
+        t0 = time.perf_counter()
+        generate_dataset(root, args.models_dir, num_images=args.num_images, workers=workers, progress=False,
+                         **_options(args))
+        wall = time.perf_counter() - t0
+        steady, n = _steady_rate(root, "train")
+        print(f"kpd6d-benchmark generate: {args.num_images} images {args.width}x{args.height}, 1 object + "
+              f"{args.occluders} occluder(s), rgb {args.rgb_format}{', depth' if args.depth else ''}, "
+              f"{workers} worker(s), {os.cpu_count()} cores")
+        print(f"  total : {args.num_images / wall:6.1f} images/s  ({wall:.1f} s incl. start-up and models)")
+        print(f"  steady: {steady:6.1f} images/s  (first to last image written, {n} images)")
+    finally:
+        if not args.out:
+            shutil.rmtree(root, ignore_errors=True)
+    if args.profile:
+        _profile(args)
+    return 0

@@ -4,6 +4,7 @@ See :mod:`kpd6d.symmetry.handlers` for canonicalisation of poses and :mod:`kpd6d
 the detection of an object's rotational symmetries from its mesh.
 """
 
+from kpd6d.symmetry.auto import AutoSymmetry
 from kpd6d.symmetry.handlers import (
     ContinuousSymmetry,
     DiscreteSymmetry,
@@ -15,6 +16,7 @@ from kpd6d.symmetry.handlers import (
 )
 
 __all__ = [
+    "AutoSymmetry",
     "ContinuousSymmetry",
     "DiscreteSymmetry",
     "NoSymmetry",

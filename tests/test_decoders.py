@@ -56,7 +56,7 @@ def test_noisy_heatmaps_and_borders():
     # a peak on the border or outside: finite coords within the map, no exceptions
     edge = gaussian_heatmaps(torch.tensor([[[0.0, 10.0], [-3.0, 70.0]]]), 64, 2.0)
     for name in ("argmax", "soft_argmax", "subpixel"):
-        xy, conf = DECODERS.build(name)(edge)
+        xy, _ = DECODERS.build(name)(edge)
         assert torch.isfinite(xy).all() and (xy >= -1).all() and (xy <= 64).all()
 
 

@@ -8,6 +8,14 @@ from kpd6d.kpd.heads import KeypointNet
 from kpd6d.registry import BACKBONES, UnknownNameError
 
 
+@pytest.fixture(autouse=True)
+def _one_thread():
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def test_registered_backbones():
     want = {"resnet18", "resnet34", "resnet50", "resnet101", "hrnet_w18", "hrnet_w32", "convnext_tiny"}
     assert want <= set(BACKBONES.names())
@@ -15,7 +23,7 @@ def test_registered_backbones():
         BACKBONES.build("resnet9000")
 
 
-@pytest.mark.parametrize("name", ["resnet18", "hrnet_w18", "convnext_tiny"])
+@pytest.mark.parametrize("name", ["resnet18", "hrnet_w18", "convnext_tiny", "tiny"])
 @pytest.mark.parametrize("head", [{"name": "deconv", "deconv_channels": 32}, {"name": "fpn", "fpn_channels": 32}])
 def test_keypoint_net_output_stride_4(name, head):
     net = KeypointNet({"name": name}, head, num_keypoints=5, num_groups=3, out_stride=4).eval()

@@ -18,7 +18,7 @@ from torch import nn
 
 from kpd6d.registry import BACKBONES
 
-__all__ = ["TIMM_BACKBONES", "Backbone", "BackboneWeightsError", "timm_backbone"]
+__all__ = ["TIMM_BACKBONES", "Backbone", "BackboneWeightsError", "TinyBackbone", "timm_backbone"]
 
 #: registry name -> timm model name
 TIMM_BACKBONES = {
@@ -116,3 +116,35 @@ def _make(timm_name: str):
 
 for _name, _timm in TIMM_BACKBONES.items():
     BACKBONES.add(_name, _make(_timm))
+
+
+class TinyBackbone(nn.Module):
+    """A small plain conv net (5 stride-2 stages, strides 2 … 32) for tests and CPU smoke runs; not for accuracy."""
+
+    def __init__(self, width: int = 16, in_chans: int = 3) -> None:
+        super().__init__()
+        if width < 1:
+            raise ValueError(f"tiny backbone: width must be >= 1, got {width}")
+        self.model_name = "tiny"
+        self.channels = [width, 2 * width, 4 * width, 4 * width, 8 * width]
+        self.reductions = [2, 4, 8, 16, 32]
+        stages, cin = [], in_chans
+        for c in self.channels:
+            stages.append(nn.Sequential(
+                nn.Conv2d(cin, c, 3, 2, 1, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True),
+                nn.Conv2d(c, c, 3, 1, 1, bias=False), nn.BatchNorm2d(c), nn.ReLU(inplace=True)))
+            cin = c
+        self.stages = nn.ModuleList(stages)
+
+    def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
+        out = []
+        for stage in self.stages:
+            x = stage(x)
+            out.append(x)
+        return out
+
+
+@BACKBONES.register("tiny")
+def tiny(width: int = 16, in_chans: int = 3) -> TinyBackbone:
+    """Small plain conv backbone for tests / smoke runs (no pretrained weights)."""
+    return TinyBackbone(width=width, in_chans=in_chans)

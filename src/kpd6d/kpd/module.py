@@ -1,0 +1,309 @@
+"""``KPDModule``: the keypoint-detector LightningModule (training, validation, inference).
+
+Everything inference needs is a constructor argument, so Lightning stores it in the checkpoint's
+hyper-parameters and ``KPDModule.load_checkpoint(path)`` rebuilds the module without any training
+config: covered object ids, their 3-D keypoints, diameters, symmetries and sample points (for ADD(-S)
+and 2-D projection metrics), input size, output stride, σ, crop scale, decoder, backbone and head.
+
+No device-specific code: bf16 mixed precision and DDP are trainer settings.
+"""
+
+from __future__ import annotations
+
+import os
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import pytorch_lightning as pl
+import torch
+
+from kpd6d.geometry import affine_apply, box_to_crop_affine, invert_affine
+from kpd6d.kpd.heads import KeypointNet
+from kpd6d.kpd.heatmaps import crop_to_heatmap, gaussian_heatmaps, heatmap_to_crop
+
+__all__ = ["KPDModule"]
+
+GROUPINGS = ("per_object", "shared")
+
+
+def _plain(x: Any) -> Any:
+    """numpy / OmegaConf values → plain Python (so hyper-parameters pickle and yaml cleanly)."""
+    try:
+        from omegaconf import DictConfig, ListConfig, OmegaConf
+
+        if isinstance(x, (DictConfig, ListConfig)):
+            return OmegaConf.to_container(x, resolve=True)
+    except ImportError:  # pragma: no cover
+        pass
+    if isinstance(x, np.ndarray):
+        return x.tolist()
+    if isinstance(x, Mapping):
+        return {k: _plain(v) for k, v in x.items()}
+    if isinstance(x, (list, tuple)):
+        return [_plain(v) for v in x]
+    if isinstance(x, np.generic):
+        return x.item()
+    return x
+
+
+class KPDModule(pl.LightningModule):
+    """Heatmap keypoint detector for the objects ``obj_ids``.
+
+    ``keypoints_3d``, ``diameters``, ``symmetric`` and ``model_points`` are lists aligned with
+    ``obj_ids`` ((k, 3) mm, mm, bool, (P, 3) mm). ``grouping="per_object"`` gives one heatmap group
+    per object (selected by the object's index), ``"shared"`` one group for all.
+    """
+
+    def __init__(self, obj_ids: Sequence[int], keypoints_3d: Sequence, diameters: Sequence[float],
+                 symmetric: Sequence[bool] | None = None, model_points: Sequence | None = None,
+                 symmetries: Sequence[Mapping] | None = None,
+                 backbone: Mapping | None = None, head: Mapping | None = None, grouping: str = "per_object",
+                 input_size: int = 256, out_stride: int = 4, sigma: float = 2.0, crop_scale: float = 1.25,
+                 decoder: Mapping | None = None, loss: Mapping | None = None, optimizer: Mapping | None = None,
+                 scheduler: Mapping | None = None, augment: Mapping | None = None, top_l: int | None = None,
+                 pnp: Mapping | None = None) -> None:
+        super().__init__()
+        obj_ids = [int(o) for o in obj_ids]
+        n = len(obj_ids)
+        if n == 0:
+            raise ValueError("KPDModule: obj_ids is empty")
+        if grouping not in GROUPINGS:
+            raise ValueError(f"KPDModule: grouping {grouping!r} unknown; known: {', '.join(GROUPINGS)}")
+        kps = [np.asarray(k, dtype=np.float64) for k in keypoints_3d]
+        if len(kps) != n or len(diameters) != n:
+            raise ValueError(f"KPDModule: keypoints_3d ({len(kps)}) and diameters ({len(diameters)}) must have "
+                             f"one entry per obj_id ({n})")
+        ks = {o: k.shape for o, k in zip(obj_ids, kps)}
+        if any(len(s) != 2 or s[1] != 3 for s in ks.values()) or len({s[0] for s in ks.values()}) != 1:
+            raise ValueError(f"KPDModule: keypoints_3d must be (k, 3) with the same k for every object, got {ks}")
+        if input_size % out_stride:
+            raise ValueError(f"KPDModule: input_size {input_size} must be a multiple of out_stride {out_stride}")
+        self.save_hyperparameters({
+            "obj_ids": obj_ids, "keypoints_3d": _plain(kps), "diameters": [float(d) for d in diameters],
+            "symmetric": [bool(s) for s in (symmetric if symmetric is not None else [False] * n)],
+            "model_points": _plain(model_points) if model_points is not None else None,
+            "symmetries": _plain(symmetries) if symmetries is not None else None,
+            "backbone": _plain(backbone) or {"name": "resnet101"}, "head": _plain(head) or {"name": "deconv"},
+            "grouping": grouping, "input_size": int(input_size), "out_stride": int(out_stride),
+            "sigma": float(sigma), "crop_scale": float(crop_scale),
+            "decoder": _plain(decoder) or {"name": "subpixel"},
+            "loss": _plain(loss) or {}, "optimizer": _plain(optimizer) or {"name": "adam", "lr": 1e-3},
+            "scheduler": _plain(scheduler), "augment": _plain(augment), "top_l": top_l,
+            "pnp": _plain(pnp) or {"name": "epnp"},
+        })
+        hp = self.hparams
+        self.num_keypoints = kps[0].shape[0]
+        self.net = KeypointNet(hp.backbone, hp.head, self.num_keypoints,
+                               num_groups=n if grouping == "per_object" else 1, out_stride=hp.out_stride)
+        from kpd6d.registry import DECODERS, build_from_cfg
+
+        self.decoder = build_from_cfg(DECODERS, hp.decoder)
+        self.augment = None
+        if hp.augment:
+            from kpd6d.kpd.augment import BatchAugment
+
+            self.augment = BatchAugment(**hp.augment)
+        lcfg = dict(hp.loss)
+        self.visibility_weighted = bool(lcfg.pop("visibility_weighted", False))
+        self.invisible_weight = float(lcfg.pop("invisible_weight", 0.0))
+        self.loss_scale = float(lcfg.pop("scale", 1.0))
+        if lcfg:
+            raise ValueError(f"KPDModule: unknown loss option(s) {sorted(lcfg)}; known: visibility_weighted, "
+                             "invisible_weight, scale")
+        self._obj_index = {o: i for i, o in enumerate(obj_ids)}
+        self._pnp = None
+
+    # -- what the checkpoint covers --------------------------------------------------------------
+    @property
+    def obj_ids(self) -> list[int]:
+        return list(self.hparams.obj_ids)
+
+    @property
+    def keypoints_3d(self) -> dict[int, np.ndarray]:
+        """obj_id → (k, 3) keypoints (model frame, mm)."""
+        return {o: np.asarray(k, dtype=np.float64) for o, k in zip(self.hparams.obj_ids, self.hparams.keypoints_3d)}
+
+    @property
+    def heatmap_size(self) -> int:
+        return self.hparams.input_size // self.hparams.out_stride
+
+    @classmethod
+    def from_models(cls, models: Sequence, keypoints_3d: Mapping[int, Any], num_points: int = 500,
+                    **kwargs: Any) -> KPDModule:
+        """Build from :class:`~kpd6d.objects.ObjectModel` s and ``{obj_id: (k, 3)}`` keypoints."""
+        models = sorted(models, key=lambda m: m.obj_id)
+        missing = [m.obj_id for m in models if m.obj_id not in keypoints_3d]
+        if missing:
+            raise KeyError(f"KPDModule.from_models: no keypoints for object(s) {missing}")
+        return cls(
+            obj_ids=[m.obj_id for m in models], keypoints_3d=[keypoints_3d[m.obj_id] for m in models],
+            diameters=[m.diameter for m in models], symmetric=[m.is_symmetric for m in models],
+            model_points=[m.sample_points(num_points, seed=0) for m in models],
+            symmetries=[{"symmetries_discrete": [np.asarray(s).reshape(-1).tolist() for s in m.symmetries_discrete],
+                         "symmetries_continuous": _plain(m.symmetries_continuous)} for m in models],
+            **kwargs,
+        )
+
+    @classmethod
+    def load_checkpoint(cls, path: str | os.PathLike, map_location: Any = "cpu") -> KPDModule:
+        """Load a checkpoint for inference (eval mode); no training config needed."""
+        p = Path(path)
+        if not p.is_file():
+            raise FileNotFoundError(f"KPD checkpoint {str(p)!r} does not exist")
+        module = cls.load_from_checkpoint(str(p), map_location=map_location, weights_only=False)
+        return module.eval()
+
+    def obj_indices(self, obj_ids) -> torch.Tensor:
+        ids = obj_ids.tolist() if isinstance(obj_ids, torch.Tensor) else list(obj_ids)
+        unknown = sorted({int(o) for o in ids} - set(self._obj_index))
+        if unknown:
+            raise KeyError(f"KPD model does not cover object(s) {unknown}; it covers {self.obj_ids}")
+        return torch.tensor([self._obj_index[int(o)] for o in ids], dtype=torch.long, device=self.device)
+
+    # -- network ---------------------------------------------------------------------------------
+    def forward(self, images: torch.Tensor, obj_index: torch.Tensor | None = None) -> torch.Tensor:
+        """Crops (B, 3, S, S) in [0, 1] → heatmaps (B, k, S/s, S/s) of each sample's object group."""
+        return self.net.select(self.net(images), obj_index)
+
+    def targets(self, keypoints_crop: torch.Tensor) -> torch.Tensor:
+        return gaussian_heatmaps(crop_to_heatmap(keypoints_crop.float(), self.hparams.out_stride),
+                                 self.heatmap_size, self.hparams.sigma)
+
+    def heatmap_loss(self, pred: torch.Tensor, target: torch.Tensor, visibility: torch.Tensor | None) -> torch.Tensor:
+        """MSE over heatmap pixels (paper); visibility-weighted: invisible keypoints weigh ``invisible_weight``."""
+        se = (pred.float() - target.float()) ** 2
+        per_kp = se.mean(dim=(-1, -2))  # (B, k)
+        if self.visibility_weighted and visibility is not None:
+            w = visibility.float() + self.invisible_weight * (1 - visibility.float())
+            return self.loss_scale * (per_kp * w).sum() / w.sum().clamp(min=1.0)
+        return self.loss_scale * per_kp.mean()
+
+    def decode(self, heatmaps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Heatmaps → (keypoints (B, k, 2) crop px, confidences (B, k))."""
+        coords, conf = self.decoder(heatmaps.float())
+        return heatmap_to_crop(coords, self.hparams.out_stride), conf
+
+    # -- training --------------------------------------------------------------------------------
+    def training_step(self, batch: Mapping[str, Any], batch_idx: int) -> torch.Tensor:
+        images, kps, vis = batch["image"], batch["keypoints"], batch["visibility"]
+        if self.augment is not None:
+            images, moved, _ = self.augment(images, kps)
+            if self.augment.geometric is not None:
+                S = self.hparams.input_size
+                inside = ((moved >= -0.5) & (moved < S - 0.5)).all(-1)
+                vis = vis * inside.to(vis.dtype)
+                kps = moved
+        target = batch["heatmaps"] if ("heatmaps" in batch and (self.augment is None or self.augment.geometric is None)) \
+            else self.targets(kps)
+        pred = self(images, batch["obj_index"])
+        loss = self.heatmap_loss(pred, target, vis)
+        self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True, batch_size=images.shape[0])
+        return loss
+
+    def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
+        images = batch["image"]
+        B = images.shape[0]
+        pred = self(images, batch["obj_index"])
+        target = batch["heatmaps"] if "heatmaps" in batch else self.targets(batch["keypoints"])
+        self.log("val/loss", self.heatmap_loss(pred, target, batch["visibility"]), prog_bar=True, batch_size=B,
+                 sync_dist=True)
+        kp_crop, conf = self.decode(pred)
+        kp_img = affine_apply(invert_affine(batch["affine"].double()), kp_crop.double())
+        kp_err = (kp_img - batch["keypoints_image"].double()).norm(dim=-1).mean()
+        self.log("val/kp_err_px", kp_err.float(), prog_bar=True, batch_size=B, sync_dist=True)
+        m = self.pose_metrics(kp_img, conf, batch["obj_id"], batch["K"], batch["R"], batch["t"])
+        for name, value in m.items():
+            self.log(f"val/{name}", value, prog_bar=name == "proj2d_acc_5px", batch_size=B, sync_dist=True)
+
+    def pose_metrics(self, kp_img, conf, obj_ids, K, R_gt, t_gt) -> dict[str, float]:
+        """top-l + PnP per instance → mean 2-D projection accuracy at 5 px, ADD(-S) accuracy at 0.1 d,
+        and the PnP failure rate (a failed PnP counts as a miss)."""
+        from kpd6d.evaluation.errors import add_error, adds_error, proj2d_error
+        from kpd6d.kpd.select import solve_top_l
+
+        if self._pnp is None:
+            from kpd6d.registry import PNP_SOLVERS, build_from_cfg
+
+            self._pnp = build_from_cfg(PNP_SOLVERS, self.hparams.pnp)
+        hp = self.hparams
+        idx = self.obj_indices(obj_ids).tolist()
+        kp3 = np.stack([np.asarray(hp.keypoints_3d[i], dtype=np.float64) for i in idx])
+        Kn, Rg, tg = (x.detach().cpu().double().numpy() for x in (K, R_gt, t_gt))
+        poses = solve_top_l(self._pnp, kp3, kp_img, Kn, conf.float(), l=hp.top_l)
+        hit2d, hitadd, fail = [], [], []
+        for j, (i, est) in enumerate(zip(idx, poses)):
+            if not est.ok:
+                hit2d.append(0.0)
+                hitadd.append(0.0)
+                fail.append(1.0)
+                continue
+            pts = np.asarray(hp.model_points[i] if hp.model_points is not None else hp.keypoints_3d[i], dtype=np.float64)
+            Re, te = np.asarray(est.R, dtype=np.float64), np.asarray(est.t, dtype=np.float64)
+            e2d = proj2d_error(Re, te, Rg[j], tg[j], pts, Kn[j])
+            ead = (adds_error if hp.symmetric[i] else add_error)(Re, te, Rg[j], tg[j], pts)
+            hit2d.append(float(e2d < 5.0))
+            hitadd.append(float(ead < 0.1 * hp.diameters[i]))
+            fail.append(0.0)
+        return {"proj2d_acc_5px": float(np.mean(hit2d)), "add_acc_0.1d": float(np.mean(hitadd)),
+                "pnp_fail_rate": float(np.mean(fail))}
+
+    def configure_optimizers(self):
+        ocfg = dict(self.hparams.optimizer)
+        name = ocfg.pop("name", "adam").lower()
+        optimizers = {"adam": torch.optim.Adam, "adamw": torch.optim.AdamW, "sgd": torch.optim.SGD,
+                      "rmsprop": torch.optim.RMSprop}
+        if name not in optimizers:
+            raise ValueError(f"unknown optimizer {name!r}; known: {', '.join(sorted(optimizers))}")
+        opt = optimizers[name](self.parameters(), **ocfg)
+        if not self.hparams.scheduler:
+            return opt
+        scfg = dict(self.hparams.scheduler)
+        sname = scfg.pop("name", None)
+        interval = scfg.pop("interval", "epoch")
+        schedulers = {"step": torch.optim.lr_scheduler.StepLR, "multistep": torch.optim.lr_scheduler.MultiStepLR,
+                      "cosine": torch.optim.lr_scheduler.CosineAnnealingLR,
+                      "exponential": torch.optim.lr_scheduler.ExponentialLR,
+                      "onecycle": torch.optim.lr_scheduler.OneCycleLR}
+        if sname not in schedulers:
+            raise ValueError(f"unknown scheduler {sname!r}; known: {', '.join(sorted(schedulers))}")
+        if sname == "onecycle" and "total_steps" not in scfg:
+            scfg["total_steps"] = int(self.trainer.estimated_stepping_batches)
+            interval = "step"
+        return {"optimizer": opt, "lr_scheduler": {"scheduler": schedulers[sname](opt, **scfg), "interval": interval}}
+
+    # -- inference -------------------------------------------------------------------------------
+    @torch.no_grad()
+    def predict_keypoints(self, images: torch.Tensor, boxes, image_index, obj_ids) -> tuple[torch.Tensor, torch.Tensor]:
+        """Keypoints in image px for N boxes over a batch of B images.
+
+        ``images`` (B, 3, H, W) float [0, 1]; ``boxes`` (N, 4) xywh px; ``image_index`` (N,) which image
+        each box is in; ``obj_ids`` (N,). Crops are made on the images' device with kornia's
+        ``warp_affine`` (the same affine as the training crops). Returns ``keypoints_2d`` (N, k, 2)
+        image px and ``confidences`` (N, k).
+        """
+        from kornia.geometry.transform import warp_affine
+
+        if images.ndim != 4 or images.shape[1] != 3:
+            raise ValueError(f"predict_keypoints: images must be (B, 3, H, W), got {tuple(images.shape)}")
+        dev = self.device
+        images = images.to(dev)
+        boxes = torch.as_tensor(boxes, dtype=torch.float64, device=dev).reshape(-1, 4)
+        image_index = torch.as_tensor(image_index, dtype=torch.long, device=dev).reshape(-1)
+        N = boxes.shape[0]
+        if len(image_index) != N or len(obj_ids) != N:
+            raise ValueError(f"predict_keypoints: {N} boxes but {len(image_index)} image indices and "
+                             f"{len(obj_ids)} obj_ids")
+        k = self.num_keypoints
+        if N == 0:
+            return images.new_zeros(0, k, 2), images.new_zeros(0, k)
+        if (image_index < 0).any() or (image_index >= images.shape[0]).any():
+            raise ValueError(f"predict_keypoints: image_index out of range [0, {images.shape[0]})")
+        oi = self.obj_indices(obj_ids)
+        S = self.hparams.input_size
+        A = box_to_crop_affine(boxes, S, scale=self.hparams.crop_scale)
+        crops = warp_affine(images[image_index].float(), A.float(), (S, S), align_corners=True)
+        kp_crop, conf = self.decode(self(crops.to(images.dtype), oi))
+        kp_img = affine_apply(invert_affine(A), kp_crop.double())
+        return kp_img.to(images.dtype), conf.to(images.dtype)

@@ -18,6 +18,7 @@ from __future__ import annotations
 import hashlib
 import json
 import os
+import re
 import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -101,8 +102,11 @@ def save_keypoints(path: str | os.PathLike, keypoints: dict[int, Any], *, design
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        text = json.dumps(doc, indent=1)
+        # one line per point: collapse the innermost numeric lists
+        text = re.sub(r"\[\s+([-+0-9.eE,\s]+?)\s+\]", lambda mt: "[" + " ".join(mt.group(1).split()) + "]", text)
         with os.fdopen(fd, "w") as f:
-            json.dump(doc, f, indent=1)
+            f.write(text)
         os.replace(tmp, path)
     except BaseException:
         if os.path.exists(tmp):

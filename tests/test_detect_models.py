@@ -131,7 +131,7 @@ def test_centernet_targets_round_trip_through_decoding():
     # the heatmap decays away from the centre and stays in [0, 1]
     assert float(heat.min()) >= 0.0 and float(heat[0, 1, 5, 4]) < 1.0
     # decoding the targets recovers the boxes exactly
-    B, C, h, w = heat.shape
+    B, _, h, w = heat.shape
     wh_map, off_map = torch.zeros(B, 2, h * w), torch.zeros(B, 2, h * w)
     wh_map[batch, :, index] = wh
     off_map[batch, :, index] = off
@@ -239,7 +239,7 @@ def test_bad_configuration_errors():
         build_detector("faster_rcnn", obj_ids=[1], backbone="vgg")
     with pytest.raises(TypeError, match="accepts"):
         build_from_cfg(DETECTORS, {"name": "centernet", "obj_ids": [1], "bogus": 3})
-    with pytest.raises(FileNotFoundError, match="no_such.pth"):
+    with pytest.raises(FileNotFoundError, match=r"no_such\.pth"):
         build_detector("centernet", obj_ids=[1], backbone_weights_path="/tmp/no_such.pth")
 
 
@@ -263,7 +263,7 @@ def test_checkpoint_round_trip_and_wrong_objects(tmp_path):
     torch.save({"state_dict": {}}, tmp_path / "other.pt")
     with pytest.raises(DetectionInputError, match="not a kpd6d detector checkpoint"):
         load_detector(tmp_path / "other.pt")
-    with pytest.raises(FileNotFoundError, match="missing.pt"):
+    with pytest.raises(FileNotFoundError, match=r"missing\.pt"):
         load_detector(tmp_path / "missing.pt")
 
 

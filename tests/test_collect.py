@@ -14,9 +14,9 @@ def _run(root, i, overrides, mean, per_object):
 
 
 def test_collect_top_l_sweep_and_designator_table(tmp_path):
-    for i, l in enumerate([4, 10, 50]):
-        _run(tmp_path, i, [f"select.top_l={l}", "designator=sift"],
-             {"add_0.1d": l / 100, "proj2d_5px": 0.5}, {"1": {"add_0.1d": l / 100}, "5": {"add_0.1d": 0.2}})
+    for i, top_l in enumerate([4, 10, 50]):
+        _run(tmp_path, i, [f"select.top_l={top_l}", "designator=sift"],
+             {"add_0.1d": top_l / 100, "proj2d_5px": 0.5}, {"1": {"add_0.1d": top_l / 100}, "5": {"add_0.1d": 0.2}})
     res = collect(tmp_path)
     assert res["varied"] == ["select.top_l"]
     rows = list(csv.DictReader(open(res["csv"])))

@@ -98,11 +98,11 @@ def pose_matrix(R, t):
     if _is_torch(R):
         import torch
 
-        T = torch.zeros(R.shape[:-2] + (4, 4), dtype=R.dtype, device=R.device)
+        T = torch.zeros((*R.shape[:-2], 4, 4), dtype=R.dtype, device=R.device)
     else:
         R = np.asarray(R, dtype=np.float64)
         t = np.asarray(t, dtype=np.float64)
-        T = np.zeros(R.shape[:-2] + (4, 4), dtype=np.float64)
+        T = np.zeros((*R.shape[:-2], 4, 4), dtype=np.float64)
     T[..., :3, :3] = R
     T[..., :3, 3] = t
     T[..., 3, 3] = 1.0
@@ -186,14 +186,14 @@ def box_to_crop_affine(box_xywh, out_size: tuple[int, int] | int, *, scale: floa
         sw = torch.clamp(sw * scale, min=1e-6)
         sh = torch.clamp(sh * scale, min=1e-6)
         ax, ay = W / sw, H / sh
-        A = torch.zeros(b.shape[:-1] + (2, 3), dtype=b.dtype, device=b.device)
+        A = torch.zeros((*b.shape[:-1], 2, 3), dtype=b.dtype, device=b.device)
     else:
         sw = np.maximum(w, h) if square else w
         sh = np.maximum(w, h) if square else h
         sw = np.maximum(sw * scale, 1e-6)
         sh = np.maximum(sh * scale, 1e-6)
         ax, ay = W / sw, H / sh
-        A = np.zeros(b.shape[:-1] + (2, 3), dtype=np.float64)
+        A = np.zeros((*b.shape[:-1], 2, 3), dtype=np.float64)
     # crop pixel u' = ax * (u - cx) + (W - 1) / 2  (pixel centres at integers in both frames)
     A[..., 0, 0] = ax
     A[..., 1, 1] = ay

@@ -59,19 +59,11 @@ def _check_K(K, n: int) -> np.ndarray:
 
 
 def _top_l_mask(confidences: torch.Tensor, top_l: int | None) -> torch.Tensor:
-    """Boolean mask (N, k) of the ``top_l`` most confident keypoints (all when None or >= k)."""
-    if top_l is None or top_l >= confidences.shape[-1]:
-        return torch.ones_like(confidences, dtype=torch.bool)
+    """Boolean mask (N, k) of the ``top_l`` most confident keypoints (all when None)."""
     from kpd6d.kpd.select import top_l as select_top_l
 
-    sel = select_top_l(confidences, int(top_l))
-    if isinstance(sel, tuple):  # (values, indices) style
-        sel = sel[-1]
-    sel = torch.as_tensor(sel, device=confidences.device)
-    if sel.dtype == torch.bool:
-        return sel
     mask = torch.zeros_like(confidences, dtype=torch.bool)
-    return mask.scatter_(-1, sel.long(), True)
+    return mask.scatter_(-1, select_top_l(confidences, top_l), True)
 
 
 class PosePipeline:

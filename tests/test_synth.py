@@ -423,8 +423,8 @@ def test_renderer_antialias_only_changes_colour_edges():
         out[aa] = r.render([(mesh, R, t)], lighting=Lighting())
         r.close()
     a, b = out[True], out[False]
-    np.testing.assert_array_equal(a.masks_visib[0], b.masks_visib[0])  # masks / depth: same pass
-    np.testing.assert_array_equal(a.depth, b.depth)
+    np.testing.assert_array_equal(a.masks_visib[0], b.masks_visib[0])  # masks / depth: pixel-centre samples
+    np.testing.assert_allclose(a.depth, b.depth, atol=0.01)  # (24-bit depth resolved differently)
     m = a.masks_visib[0].astype(np.uint8)
     edge = (cv2.dilate(m, np.ones((3, 3))) - cv2.erode(m, np.ones((3, 3)))) > 0
     diff = np.abs(a.rgb.astype(int) - b.rgb.astype(int)).sum(-1)

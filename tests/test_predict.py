@@ -123,7 +123,7 @@ def test_cli_with_real_untrained_checkpoints(tmp_path, monkeypatch, capsys):
     out = tmp_path / "run"
     monkeypatch.setattr(sys, "argv", ["kpd6d-predict", f"input={tmp_path / 'in.png'}", f"kpd_ckpt={tmp_path / 'kpd.ckpt'}",
                                       f"detector_ckpt={tmp_path / 'det.pt'}", f"camera={tmp_path / 'k.json'}",
-                                      "device=cpu", "progress=false", "pipeline=all_keypoints", f"hydra.run.dir={out}"])
+                                      "device=cpu", "progress=false", "select.top_l=null", f"hydra.run.dir={out}"])
     main()
     data = json.loads((out / "poses.json").read_text())
     assert len(data["frames"]) == 1 and len(data["frames"][0]["poses"]) == 3  # max_detections boxes, each estimated

@@ -1,4 +1,4 @@
-"""``kpd6d-evaluate data.root=... kpd_ckpt=KPD.ckpt [detector_ckpt=oracle|DET.pt] [pipeline=paper|ransac|...]``.
+"""``kpd6d-evaluate data.root=... kpd_ckpt=KPD.ckpt [detector_ckpt=oracle|DET.pt] [pnp=epnp|epnp_ransac|...] [select.top_l=10]``.
 
 Runs :func:`kpd6d.evaluation.evaluate.evaluate` (configs in conf/evaluate.yaml) and writes
 metrics.json, results.csv, report.md, plots and overlays into the run folder.
@@ -25,9 +25,10 @@ def run_evaluation(cfg, out_dir: str | Path) -> dict:
     targets = cfg.data.targets
     if targets == "auto":
         targets = "test_targets_bop19.json" if (root / "test_targets_bop19.json").is_file() else None
-    pipe_cfg = OmegaConf.to_container(cfg.pipeline, resolve=True)
+    pnp_cfg = OmegaConf.to_container(cfg.pnp, resolve=True)
+    top_l = cfg.select.top_l
     obj_ids = list(cfg.data.obj_ids) if cfg.data.obj_ids else None
-    pipeline = PosePipeline.from_checkpoints(cfg.detector_ckpt, cfg.kpd_ckpt, pnp=pipe_cfg["pnp"], top_l=pipe_cfg["top_l"],
+    pipeline = PosePipeline.from_checkpoints(cfg.detector_ckpt, cfg.kpd_ckpt, pnp=pnp_cfg, top_l=top_l,
                                              device=cfg.device, obj_ids=obj_ids)
     covered = sorted(int(o) for o in pipeline.kpd.keypoints_3d)
     wanted = obj_ids if obj_ids is not None else covered
@@ -35,8 +36,8 @@ def run_evaluation(cfg, out_dir: str | Path) -> dict:
     if missing:
         raise ValueError(f"data.obj_ids {missing} are not covered by the KPD checkpoint {cfg.kpd_ckpt} (it covers {covered})")
     ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
-    info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(cfg.kpd_ckpt), "pnp": pipe_cfg["pnp"],
-            "top_l": pipe_cfg["top_l"], "pipeline": pipe_cfg.get("name"), "device": str(pipeline.device)}
+    info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(cfg.kpd_ckpt), "pnp": pnp_cfg,
+            "top_l": top_l, "device": str(pipeline.device)}
     return evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle", batch_size=int(cfg.batch_size),
                     max_frames=cfg.data.max_frames, n_overlays=int(cfg.overlays), run_info=info,
                     progress=bool(cfg.progress))

@@ -211,8 +211,8 @@ def main(cfg) -> None:
         raise ValueError("kpd6d-predict needs a trained detector (detector_ckpt=<file>): the oracle needs GT boxes")
     out_dir = cfg.out_dir or HydraConfig.get().runtime.output_dir
     K = load_intrinsics(cfg.camera)
-    pipe_cfg = OmegaConf.to_container(cfg.pipeline, resolve=True)
-    pipe = PosePipeline.from_checkpoints(cfg.detector_ckpt, cfg.kpd_ckpt, pnp=pipe_cfg["pnp"], top_l=pipe_cfg["top_l"],
+    pipe = PosePipeline.from_checkpoints(cfg.detector_ckpt, cfg.kpd_ckpt, pnp=OmegaConf.to_container(cfg.pnp, resolve=True),
+                                         top_l=cfg.select.top_l,
                                          device=cfg.device)
     info = predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=int(cfg.batch_size),
                           overlays=bool(cfg.overlays), progress=bool(cfg.progress))

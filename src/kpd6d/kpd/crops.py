@@ -1,0 +1,224 @@
+"""KPD training / validation crops over a BOP dataset (generated or real).
+
+For every annotated instance: a square crop around its box (GT ``bbox_visib`` / ``bbox_obj`` or a
+detector's box), enlarged by ``crop_scale``, resized to ``input_size`` with ``cv2.warpAffine`` and
+:func:`kpd6d.geometry.box_to_crop_affine`; the designated keypoints projected with the (symmetry-
+canonicalised) GT pose and mapped into the crop; Gaussian target heatmaps at ``out_stride`` for all
+keypoints (visible or not) and per-keypoint visibility flags.
+
+Visibility (``visibility=``): ``crop`` — inside the crop; ``mask`` — also on the instance's visible
+mask (catches occlusion by other objects, not self-occlusion); ``depth`` — also not behind the scene
+depth at its pixel (catches self- and inter-object occlusion); ``auto`` — ``depth`` when the frame
+has a depth image, else ``mask`` when it has masks, else ``crop``.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Callable, Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+import torch
+from torch.utils.data import Dataset
+
+from kpd6d.geometry import affine_apply, box_to_crop_affine, project_points
+from kpd6d.kpd.heatmaps import crop_to_heatmap, gaussian_heatmaps
+
+__all__ = ["BOX_SOURCES", "VISIBILITY_MODES", "KPDCropDataset", "canonicalizer_for", "load_detection_boxes"]
+
+BOX_SOURCES = ("visib", "obj", "detections")
+VISIBILITY_MODES = ("auto", "depth", "mask", "crop")
+
+
+def canonicalizer_for(model) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
+    """``(R, t) -> (R, t)`` canonicalising the pose of a symmetric model (identity otherwise)."""
+    if not model.is_symmetric:
+        return lambda R, t: (R, t)
+    try:
+        from kpd6d.symmetry import handler_for_model
+    except ImportError as exc:  # pragma: no cover - kpd6d.symmetry is part of the library
+        raise ImportError(f"object {model.obj_id} is symmetric but kpd6d.symmetry is unavailable: {exc}") from exc
+    return handler_for_model(model).canonicalize
+
+
+def _iou_xywh(a: np.ndarray, b: np.ndarray) -> np.ndarray:
+    """IoU of box a (4,) with boxes b (N, 4)."""
+    x1 = np.maximum(a[0], b[:, 0])
+    y1 = np.maximum(a[1], b[:, 1])
+    x2 = np.minimum(a[0] + a[2], b[:, 0] + b[:, 2])
+    y2 = np.minimum(a[1] + a[3], b[:, 1] + b[:, 3])
+    inter = np.clip(x2 - x1, 0, None) * np.clip(y2 - y1, 0, None)
+    return inter / np.maximum(a[2] * a[3] + b[:, 2] * b[:, 3] - inter, 1e-9)
+
+
+def load_detection_boxes(path: str | os.PathLike) -> dict[tuple[int, int], list[tuple[int, np.ndarray, float]]]:
+    """BOP detection JSON (list of ``{scene_id, image_id, category_id, bbox (xywh), score}``) →
+    ``{(scene_id, im_id): [(obj_id, box, score), ...]}``."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"detections file {str(p)!r} does not exist")
+    try:
+        entries = json.loads(p.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"detections file {str(p)!r} is not valid JSON: {exc}") from exc
+    if not isinstance(entries, list):
+        raise ValueError(f"detections file {str(p)!r} must hold a JSON list of detections")
+    out: dict[tuple[int, int], list] = {}
+    for i, e in enumerate(entries):
+        try:
+            key = (int(e["scene_id"]), int(e["image_id"]))
+            box = np.asarray(e["bbox"], dtype=np.float64).reshape(4)
+            out.setdefault(key, []).append((int(e["category_id"]), box, float(e.get("score", 1.0))))
+        except (KeyError, TypeError, ValueError) as exc:
+            raise ValueError(f"detections file {str(p)!r}: entry {i} is malformed ({exc!r}); needs "
+                             "scene_id, image_id, category_id, bbox [x, y, w, h]") from exc
+    return out
+
+
+class KPDCropDataset(Dataset):
+    """Instance crops with keypoints, heatmaps and visibility (see the module docstring).
+
+    Items are dicts of tensors: ``image`` (3, S, S) float [0, 1]; ``keypoints`` (k, 2) crop px;
+    ``keypoints_image`` (k, 2) image px; ``visibility`` (k,) float {0, 1}; ``heatmaps`` (k, S/s, S/s)
+    (when ``return_heatmaps``); ``affine`` (2, 3) image → crop; ``box`` (4,) the box cropped
+    (after box augmentation); ``K`` (3, 3); ``R``, ``t`` (canonicalised GT pose); ``obj_id``;
+    ``obj_index`` (index into ``obj_ids``).
+    """
+
+    def __init__(self, root: str | os.PathLike | Any, split: str = "train", obj_ids: Sequence[int] | None = None,
+                 keypoints: Mapping[int, np.ndarray] | None = None, input_size: int = 256, out_stride: int = 4,
+                 sigma: float = 2.0, crop_scale: float = 1.25, box_source: str = "visib",
+                 detections: str | os.PathLike | None = None, detection_iou: float = 0.5,
+                 box_augment: Callable | None = None, min_visib_fract: float = 0.1,
+                 visibility: str = "auto", return_heatmaps: bool = True, max_instances: int | None = None,
+                 models: Sequence | None = None) -> None:
+        from kpd6d.data import BopDataset
+
+        if box_source not in BOX_SOURCES:
+            raise ValueError(f"box_source {box_source!r} unknown; known: {', '.join(BOX_SOURCES)}")
+        if visibility not in VISIBILITY_MODES:
+            raise ValueError(f"visibility {visibility!r} unknown; known: {', '.join(VISIBILITY_MODES)}")
+        if input_size % out_stride:
+            raise ValueError(f"input_size {input_size} must be a multiple of out_stride {out_stride}")
+        if box_source == "detections" and detections is None:
+            raise ValueError("box_source='detections' needs a detections file (BOP detection JSON)")
+        self.ds = root if isinstance(root, BopDataset) else BopDataset(root, split=split, obj_ids=obj_ids)
+        kps = dict(keypoints) if keypoints is not None else self.ds.load_keypoints()
+        present = self.ds.instance_obj_ids()
+        self.obj_ids = sorted(int(o) for o in (obj_ids if obj_ids is not None else present))
+        missing = [o for o in self.obj_ids if o not in kps]
+        if missing:
+            raise KeyError(f"no keypoints for object(s) {missing} (keypoints given for {sorted(kps)})")
+        self.keypoints_3d = {o: np.asarray(kps[o], dtype=np.float64) for o in self.obj_ids}
+        ks = {o: len(v) for o, v in self.keypoints_3d.items()}
+        if len(set(ks.values())) != 1:
+            raise ValueError(f"every object needs the same number of keypoints, got {ks}")
+        self.num_keypoints = next(iter(ks.values()))
+        models = list(models) if models is not None else self.ds.load_models(self.obj_ids)
+        self.models = {m.obj_id: m for m in models if m.obj_id in self.obj_ids}
+        self._canon = {o: canonicalizer_for(m) for o, m in self.models.items()}
+        self.input_size, self.out_stride, self.sigma = int(input_size), int(out_stride), float(sigma)
+        self.crop_scale, self.box_source = float(crop_scale), box_source
+        self.box_augment = box_augment
+        self.visibility = visibility
+        self.return_heatmaps = return_heatmaps
+        self.detections = load_detection_boxes(detections) if box_source == "detections" else None
+        self.detection_iou = float(detection_iou)
+        self.items: list[tuple[int, int]] = []
+        for fi, fr in enumerate(self.ds.frames):
+            for ii, inst in enumerate(fr.instances):
+                if inst.obj_id not in self.keypoints_3d:
+                    continue
+                if min_visib_fract and inst.visib_fract is not None and inst.visib_fract < min_visib_fract:
+                    continue
+                self.items.append((fi, ii))
+        if max_instances is not None and len(self.items) > int(max_instances):
+            keep = np.linspace(0, len(self.items) - 1, int(max_instances)).round().astype(int)  # evenly spread
+            self.items = [self.items[i] for i in keep]
+        if not self.items:
+            raise ValueError(f"{self.ds!r}: no instances of objects {self.obj_ids} with visib_fract >= {min_visib_fract}")
+
+    def __len__(self) -> int:
+        return len(self.items)
+
+    # -- pieces -----------------------------------------------------------------------------------
+    def _box(self, frame, inst) -> np.ndarray:
+        gt = inst.bbox_visib if self.box_source in ("visib", "detections") else inst.bbox_obj
+        if gt is None:  # no scene_gt_info: the box of the projected model
+            from kpd6d.geometry import bbox_from_points
+
+            m = self.models[inst.obj_id]
+            gt = bbox_from_points(project_points(m.sample_points(500, seed=0), frame.K, inst.R, inst.t))
+        gt = np.asarray(gt, dtype=np.float64)
+        if self.box_source == "detections":
+            cands = [d for d in self.detections.get((frame.scene_id, frame.im_id), []) if d[0] == inst.obj_id]
+            if cands:
+                ious = _iou_xywh(gt, np.stack([c[1] for c in cands]))
+                j = int(np.argmax(ious))
+                if ious[j] >= self.detection_iou:
+                    return cands[j][1].copy()
+        return gt
+
+    def _visibility(self, frame, inst, uv_img, z, in_crop) -> np.ndarray:
+        vis = in_crop.copy()
+        mode = self.visibility
+        if mode == "auto":
+            mode = "depth" if frame.scene_dir is not None and frame.depth_path().is_file() else (
+                "mask" if frame.scene_dir is not None and frame.mask_visib_path(inst.gt_index).is_file() else "crop")
+        if mode == "crop":
+            return vis
+        if mode == "depth":
+            img = frame.load_depth()
+        else:
+            img = frame.load_mask_visib(inst.gt_index)
+        H, W = img.shape[:2]
+        px = np.round(uv_img).astype(np.int64)
+        inside = (px[:, 0] >= 0) & (px[:, 0] < W) & (px[:, 1] >= 0) & (px[:, 1] < H)
+        vals = np.zeros(len(px), dtype=np.float64)
+        vals[inside] = img[px[inside, 1], px[inside, 0]]
+        if mode == "mask":
+            return vis & inside & (vals > 0)
+        tol = max(5.0, 0.03 * self.models[inst.obj_id].diameter)
+        # depth 0 = unknown: do not call the keypoint occluded
+        return vis & inside & ((vals <= 0) | (z <= vals + tol))
+
+    # -- item -------------------------------------------------------------------------------------
+    def __getitem__(self, idx: int) -> dict[str, Any]:
+        fi, ii = self.items[idx]
+        frame = self.ds.frames[fi]
+        inst = frame.instances[ii]
+        box = self._box(frame, inst)
+        if self.box_augment is not None:
+            rng = np.random.default_rng(int(torch.randint(0, 2**31 - 1, ()).item()))
+            box = self.box_augment(box, rng, obj_id=inst.obj_id)
+        S = self.input_size
+        A = box_to_crop_affine(box, S, scale=self.crop_scale)
+        rgb = frame.load_rgb()
+        crop = cv2.warpAffine(rgb, A, (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
+        R, t = self._canon[inst.obj_id](np.asarray(inst.R, dtype=np.float64), np.asarray(inst.t, dtype=np.float64))
+        K = np.asarray(frame.K, dtype=np.float64)
+        uv_img, z = project_points(self.keypoints_3d[inst.obj_id], K, R, t, return_depth=True)
+        uv = affine_apply(A, uv_img)
+        in_crop = (uv[:, 0] >= -0.5) & (uv[:, 0] < S - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < S - 0.5) & (z > 0)
+        vis = self._visibility(frame, inst, uv_img, z, in_crop)
+        item = {
+            "image": torch.from_numpy(np.ascontiguousarray(crop.transpose(2, 0, 1))).float().div_(255.0),
+            "keypoints": torch.from_numpy(uv).float(),
+            "keypoints_image": torch.from_numpy(uv_img).float(),
+            "visibility": torch.from_numpy(vis.astype(np.float32)),
+            "affine": torch.from_numpy(A),
+            "box": torch.from_numpy(np.asarray(box, dtype=np.float64)),
+            "K": torch.from_numpy(K),
+            "R": torch.from_numpy(R),
+            "t": torch.from_numpy(t),
+            "obj_id": int(inst.obj_id),
+            "obj_index": self.obj_ids.index(int(inst.obj_id)),
+        }
+        if self.return_heatmaps:
+            item["heatmaps"] = gaussian_heatmaps(crop_to_heatmap(item["keypoints"], self.out_stride),
+                                                 S // self.out_stride, self.sigma)
+        return item

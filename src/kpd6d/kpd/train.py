@@ -1,0 +1,158 @@
+"""``train_kpd(cfg)``: train the keypoint detector (``kpd6d-train stage=kpd ...``).
+
+Reads ``cfg.stage.backbone`` (conf/backbone/), ``cfg.stage.decoder`` (conf/decoder/) and
+``cfg.stage.kpd`` (conf/kpd/: model, loss, optimiser, augmentation, selection, data loader and
+``trainer`` settings) plus the top-level ``seed`` and ``data`` nodes of conf/train.yaml. With
+``data.root: null`` a small procedural dataset (train and val generated with different seeds) is
+written into ``<run dir>/data`` first. Writes TensorBoard (``tb/``) and CSV (``csv/metrics.csv``)
+logs, checkpoints (``checkpoints/best.ckpt``, ``checkpoints/last.ckpt``; a rerun in the same run
+directory resumes from ``last.ckpt``) and ``metrics.json`` (final validation metrics) into the run
+directory.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from pathlib import Path
+from typing import Any
+
+__all__ = ["build_datasets", "generate_if_needed", "run_dir_of", "train_kpd"]
+
+
+def _plain(node: Any) -> Any:
+    from omegaconf import DictConfig, ListConfig, OmegaConf
+
+    if isinstance(node, (DictConfig, ListConfig)):
+        return OmegaConf.to_container(node, resolve=True)
+    return node
+
+
+def run_dir_of(cfg) -> Path:
+    """Hydra's run directory (or ``cfg.run_dir`` / the working directory outside Hydra)."""
+    try:
+        from hydra.core.hydra_config import HydraConfig
+
+        if HydraConfig.initialized():
+            return Path(HydraConfig.get().runtime.output_dir)
+    except ImportError:  # pragma: no cover
+        pass
+    return Path(cfg.get("run_dir") or os.getcwd())
+
+
+def generate_if_needed(cfg, run_dir: Path) -> Path:
+    """``data.root`` or, when null, a procedural dataset generated (resumably) into ``<run_dir>/data``."""
+    if cfg.data.root is not None:
+        root = Path(cfg.data.root)
+        if not root.is_dir():
+            raise FileNotFoundError(f"data.root {str(root)!r} does not exist (set data.root=null to generate one)")
+        return root
+    from kpd6d.synth import generate_dataset
+
+    g = cfg.stage.kpd.generate
+    root = run_dir / "data"
+    ids = list(g.obj_ids) if g.obj_ids is not None else None
+    generate_dataset(root, obj_ids=ids, num_images=int(g.num_train), split=cfg.data.train_split,
+                     seed=int(g.seed), workers=int(g.workers))
+    if cfg.data.val_split:
+        generate_dataset(root, obj_ids=ids, num_images=int(g.num_val), split=cfg.data.val_split,
+                         seed=int(g.seed) + 1000, workers=int(g.workers))
+    return root
+
+
+def build_datasets(cfg, root: Path):
+    """(train, val or None) :class:`~kpd6d.kpd.crops.KPDCropDataset` s from the stage config."""
+    from kpd6d.kpd.box_augment import build_box_augment
+    from kpd6d.kpd.crops import KPDCropDataset
+
+    k = cfg.stage.kpd
+    common = dict(obj_ids=_plain(k.obj_ids), input_size=int(k.input_size), out_stride=int(k.out_stride),
+                  sigma=float(k.sigma), crop_scale=float(k.crop_scale), box_source=k.box_source,
+                  detections=k.detections, visibility=k.visibility, min_visib_fract=float(k.min_visib_fract))
+    train = KPDCropDataset(root, split=cfg.data.train_split, box_augment=build_box_augment(_plain(k.box_augment)),
+                           return_heatmaps=not (k.augment and (k.augment.get("rotation_deg") or k.augment.get("translate")
+                                                                or k.augment.get("scale"))),
+                           **common)
+    val = None
+    if cfg.data.val_split:
+        vc = dict(common, obj_ids=train.obj_ids)
+        if vc["box_source"] == "detections":
+            vc["box_source"] = "visib"  # validation is defined on GT boxes
+        val = KPDCropDataset(root, split=cfg.data.val_split, keypoints=train.keypoints_3d, models=list(train.models.values()),
+                             max_instances=k.val_max_instances, **vc)
+    return train, val
+
+
+def train_kpd(cfg) -> Path:
+    """Train the KPD stage; returns the run directory."""
+    import pytorch_lightning as pl
+    import torch
+    from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint, TQDMProgressBar
+    from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
+
+    from kpd6d.data import atomic_write_json
+    from kpd6d.kpd.module import KPDModule
+
+    t0 = time.time()
+    k = cfg.stage.kpd
+    run_dir = run_dir_of(cfg)
+    run_dir.mkdir(parents=True, exist_ok=True)
+    if k.get("num_threads"):
+        torch.set_num_threads(int(k.num_threads))
+    pl.seed_everything(int(cfg.seed), workers=True)
+    root = generate_if_needed(cfg, run_dir)
+    train_ds, val_ds = build_datasets(cfg, root)
+
+    module = KPDModule.from_models(
+        [train_ds.models[o] for o in train_ds.obj_ids], train_ds.keypoints_3d,
+        backbone=_plain(cfg.stage.backbone), head=_plain(k.head), grouping=k.grouping,
+        input_size=int(k.input_size), out_stride=int(k.out_stride), sigma=float(k.sigma),
+        crop_scale=float(k.crop_scale), decoder=_plain(cfg.stage.decoder), loss=_plain(k.loss),
+        optimizer=_plain(k.optimizer), scheduler=_plain(k.scheduler), augment=_plain(k.augment),
+        top_l=k.top_l, pnp=_plain(k.pnp),
+    )
+    nw = int(k.num_workers)
+    loader_kw = dict(batch_size=int(k.batch_size), num_workers=nw, persistent_workers=nw > 0, pin_memory=False)
+    train_loader = torch.utils.data.DataLoader(train_ds, shuffle=True, drop_last=len(train_ds) > int(k.batch_size),
+                                               **loader_kw)
+    val_loader = torch.utils.data.DataLoader(val_ds, shuffle=False, **loader_kw) if val_ds is not None else None
+
+    ckpt_dir = run_dir / "checkpoints"
+    monitor = "val/proj2d_acc_5px" if val_ds is not None else "train/loss_epoch"
+    callbacks = [
+        ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor=monitor,
+                        mode="max" if val_ds is not None else "min", save_top_k=1, save_last=True),
+        TQDMProgressBar(refresh_rate=max(1, int(k.get("progress_refresh", 1)))),
+        LearningRateMonitor(logging_interval="epoch"),
+    ]
+    # a new version_N per (re)start, so resuming keeps the earlier logs
+    loggers = [TensorBoardLogger(str(run_dir), name="tb"), CSVLogger(str(run_dir), name="csv")]
+    tkw = {key: v for key, v in _plain(k.trainer).items() if v is not None}
+    trainer = pl.Trainer(default_root_dir=str(run_dir), logger=loggers, callbacks=callbacks, **tkw)
+    last = ckpt_dir / "last.ckpt"
+    resume = str(last) if (k.get("resume", True) and last.is_file()) else None
+    if resume:
+        print(f"kpd6d-train: resuming from {resume}")
+    trainer.fit(module, train_loader, val_loader, ckpt_path=resume)
+
+    metrics = {key: float(v) for key, v in trainer.callback_metrics.items() if hasattr(v, "item") and v.numel() == 1}
+    best = callbacks[0]
+    summary = {
+        "stage": "kpd",
+        "data_root": str(root),
+        "obj_ids": train_ds.obj_ids,
+        "train_instances": len(train_ds),
+        "val_instances": len(val_ds) if val_ds is not None else 0,
+        "epochs": int(trainer.current_epoch),
+        "global_step": int(trainer.global_step),
+        "wall_time_s": round(time.time() - t0, 1),
+        "best_checkpoint": best.best_model_path or None,
+        "best_" + monitor.replace("/", "_"): float(best.best_model_score) if best.best_model_score is not None else None,
+        "last_checkpoint": str(last) if last.is_file() else None,
+        "final_metrics": metrics,
+    }
+    atomic_write_json(run_dir / "metrics.json", summary)
+    print(json.dumps({k2: v for k2, v in summary.items() if k2 != "final_metrics"}, indent=1))
+    print("final metrics: " + ", ".join(f"{k2}={v:.4g}" for k2, v in sorted(metrics.items())))
+    return run_dir

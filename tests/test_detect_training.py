@@ -48,7 +48,13 @@ def _toy_image(rng, W, H, objects):
 
 
 def _write_toy_bop(root: Path, split: str, n: int, seed: int, W: int = 96, H: int = 64) -> Path:
-    from kpd6d.data import atomic_write_image, save_camera, save_scene_camera, save_scene_gt, save_scene_gt_info
+    from kpd6d.data import (
+        atomic_write_image,
+        save_camera,
+        save_scene_camera,
+        save_scene_gt,
+        save_scene_gt_info,
+    )
 
     rng = np.random.default_rng(seed)
     K = np.array([[100.0, 0, W / 2], [0, 100.0, H / 2], [0, 0, 1]])
@@ -233,7 +239,8 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     x = torch.rand(1, 3, 64, 96)
     torch.testing.assert_close(ckpt.predict(x)[0].scores, det.predict(x)[0].scores)
     # rerunning in the same folder resumes from last.ckpt and trains only the missing epoch
-    res = subprocess.run(args[:-3] + ["stage.max_epochs=3", "stage.batch_size=4", "detector.input_size=[96,64]"],
+    args3 = [a if a != "stage.max_epochs=2" else "stage.max_epochs=3" for a in args]
+    res = subprocess.run(args3,
                          cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "Restoring states from the checkpoint" in res.stderr + res.stdout

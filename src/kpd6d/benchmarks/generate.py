@@ -6,6 +6,8 @@ Generates ``--num-images`` 640x480 images (one target object, one occluder by de
 * ``total``: images / wall time of the whole call (worker start-up, model loading, writing);
 * ``steady``: images / time between the first and the last image written (rgb file times), i.e.
   the rate once the workers run;
+* ``CPU``: CPU time per image over all processes and threads (start-up included), and the rate
+  that many idle cores would reach (an upper bound; use it when other jobs load the machine);
 * a per-stage profile of one process (``--profile``): where the time of one image goes.
 """
 
@@ -126,16 +128,28 @@ def main(argv: list[str] | None = None) -> int:
         print(f"kpd6d-benchmark generate: --out {root} is not empty", file=sys.stderr)
         return 2
     try:
-        t0 = time.perf_counter()
+        import resource
+
+        def cpu() -> float:  # this process + finished children (the pool's workers), all threads
+            a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
+            return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
+
+        c0, t0 = cpu(), time.perf_counter()
         generate_dataset(root, args.models_dir, num_images=args.num_images, workers=workers, progress=False,
                          **_options(args))
-        wall = time.perf_counter() - t0
+        wall, cpu_s = time.perf_counter() - t0, cpu() - c0
         steady, n = _steady_rate(root, "train")
         print(f"kpd6d-benchmark generate: {args.num_images} images {args.width}x{args.height}, 1 object + "
               f"{args.occluders} occluder(s), rgb {args.rgb_format}{', depth' if args.depth else ''}, "
               f"{workers} worker(s), {os.cpu_count()} cores")
         print(f"  total : {args.num_images / wall:6.1f} images/s  ({wall:.1f} s incl. start-up and models)")
         print(f"  steady: {steady:6.1f} images/s  (first to last image written, {n} images)")
+        ncpu = os.cpu_count() or 1
+        print(f"  CPU   : {1000 * cpu_s / args.num_images:6.1f} ms CPU time/image (all processes and threads); "
+              f"{ncpu} idle cores would give at most {ncpu * args.num_images / cpu_s:.1f} images/s")
+        if os.getloadavg()[0] > ncpu:
+            print(f"  note  : load average {os.getloadavg()[0]:.1f} on {ncpu} cores -- other jobs share the CPU; "
+                  "wall-clock rates are low")
     finally:
         if not args.out:
             shutil.rmtree(root, ignore_errors=True)

@@ -68,6 +68,17 @@ def bbox_obj_from_uv(uv: np.ndarray) -> list[int]:
     return [int(lo[0]), int(lo[1]), w, h]
 
 
+def _hull_mask(uv: np.ndarray, x0: int, y0: int, x1: int, y1: int) -> np.ndarray:
+    """Mask of the window [y0:y1, x0:x1] covering the convex hull of pixels ``uv``, dilated by 1 px."""
+    import cv2
+
+    pts = np.round((uv - [x0, y0]) * 16).astype(np.int32)
+    hull = cv2.convexHull(pts)
+    m = np.zeros((y1 - y0, x1 - x0), np.uint8)
+    cv2.fillConvexPoly(m, hull, 1, lineType=cv2.LINE_8, shift=4)
+    return cv2.dilate(m, np.ones((3, 3), np.uint8)).astype(bool)
+
+
 def silhouette_counts(renderer, model, R, t, K, width, height, bbox_obj) -> tuple[int, int]:
     """(pixels of the whole silhouette, pixels inside the image) of ``model`` at (R, t) rendered alone.
 
@@ -184,7 +195,12 @@ class SceneComposer:
             others = [res.masks_visib[j] for j in range(len(items)) if j != i]
             x0, y0 = max(x - 1, 0), max(y - 1, 0)
             x1, y1 = min(x + w + 1, self.W - 1) + 1, min(y + h + 1, self.H - 1) + 1
-            occluded = any(np.any(m[y0:y1, x0:x1]) for m in others) if x1 > x0 and y1 > y0 else False
+            occluded = False
+            if x1 > x0 and y1 > y0 and any(np.any(m[y0:y1, x0:x1]) for m in others):
+                # tighter: the silhouette lies in the convex hull of the projected vertices
+                # (grown by 1 px against rasterization ties); only pixels there can be covered
+                hull = _hull_mask(uv, x0, y0, x1, y1)
+                occluded = any(np.any(m[y0:y1, x0:x1] & hull) for m in others)
             if inside_image and not occluded:
                 px_all, px_valid = visib, visib
             else:

@@ -110,7 +110,7 @@ def test_visibility_in_crop_and_box_sources(lmo_dir, lmo_model_by_id, tmp_path):
     frame = by_obj.ds.frames[fi]
     inst = frame.instances[ii]
     np.testing.assert_allclose(by_obj[0]["box"].numpy(), inst.bbox_obj)
-    det_box = np.asarray(inst.bbox_visib, dtype=np.float64) + [3.0, -2.0, 4.0, 1.0]
+    det_box = np.asarray(inst.bbox_visib, dtype=np.float64) + np.array([3.0, -2.0, 4.0, 1.0])
     dets = [{"scene_id": frame.scene_id, "image_id": frame.im_id, "category_id": 1, "bbox": det_box.tolist(), "score": 0.9},
             {"scene_id": frame.scene_id, "image_id": frame.im_id, "category_id": 5, "bbox": [0, 0, 50, 50], "score": 0.8}]
     path = tmp_path / "dets.json"

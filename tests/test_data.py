@@ -122,6 +122,12 @@ def test_bbox_from_mask():
 def test_atomic_write_leaves_no_partial_file(tmp_path, monkeypatch):
     import os
 
+    atomic_write_bytes(tmp_path / "perm.bin", b"x")
+    mask = os.umask(0)
+    os.umask(mask)
+    assert (tmp_path / "perm.bin").stat().st_mode & 0o777 == 0o666 & ~mask  # not mkstemp's 0600
+    (tmp_path / "perm.bin").unlink()
+
     target = tmp_path / "x.json"
     target.write_text("old")
 

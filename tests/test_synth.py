@@ -429,3 +429,57 @@ def test_renderer_antialias_only_changes_colour_edges():
     edge = (cv2.dilate(m, np.ones((3, 3))) - cv2.erode(m, np.ones((3, 3)))) > 0
     diff = np.abs(a.rgb.astype(int) - b.rgb.astype(int)).sum(-1)
     assert diff[edge].mean() > 2 * diff[~edge].mean() + 1  # multisampling smooths the silhouette
+
+
+def test_keypoints_written_for_the_shipped_meshes(tmp_path, models_dir):
+    import trimesh
+
+    root = generate_dataset(tmp_path, models_dir, num_images=1, progress=False,
+                            **{**SMALL, "designator": {"name": "fps", "num_keypoints": 8}})
+    ds = BopDataset(root, "train")
+    kps = ds.load_keypoints()
+    assert sorted(kps) == [1, 2]
+    for m in ds.load_models():
+        assert kps[m.obj_id].shape == (8, 3)
+        _, dist, _ = trimesh.proximity.closest_point(m.mesh, kps[m.obj_id])
+        assert dist.max() < 1e-3 * m.diameter  # on the surface
+        assert np.linalg.norm(kps[m.obj_id][:, None] - kps[m.obj_id][None], axis=-1)[~np.eye(8, dtype=bool)].min() > 5
+    info = json.loads((root / "models" / "keypoints.json").read_text())
+    assert info["designator"] == "fps" and set(info["objects"]["1"]) >= {"points", "fingerprint"}
+
+
+def test_cli_composes_and_generates(tmp_path, models_dir):
+    from hydra import compose, initialize_config_dir
+
+    from kpd6d.cli.generate import run
+    from kpd6d.paths import config_dir
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("generate", overrides=[
+            f"out_dir={tmp_path}", f"models_dir={models_dir}", "num_images=2", "workers=1", "progress=false",
+            "options.width=160", "options.height=120", "options.designator=null", "options.distractors=[0,0]",
+            "options.distance_range=[200,400]", "options.rgb_format=png",
+        ])
+    assert run(cfg) == str(tmp_path)
+    ds = BopDataset(tmp_path, "train")
+    assert len(ds) == 2 and ds[0].rgb_path.suffix == ".png"
+    settings = json.loads((tmp_path / "dataset_info.json").read_text())["splits"]["train"]["config"]
+    assert settings["distance_range"] == [200.0, 400.0] and settings["photometric"]["prob"] == 0.5
+
+
+def test_generate_yaml_defaults_match_the_python_api():
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from kpd6d.paths import config_dir
+    from kpd6d.synth.photometric import PhotometricConfig
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("generate", overrides=["out_dir=x"])
+    opts = OmegaConf.to_container(cfg.options, resolve=True)
+    yaml_cfg, api_cfg = SynthConfig.from_options(opts), SynthConfig.from_options({})
+    a, b = yaml_cfg.to_dict(), api_cfg.to_dict()
+    assert yaml_cfg.photometric_config() == api_cfg.photometric_config() == PhotometricConfig()
+    a.pop("photometric"), b.pop("photometric")
+    assert a == b
+    assert (cfg.num_images, cfg.split, cfg.seed) == (1000, "train", 0)

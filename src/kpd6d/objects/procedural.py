@@ -96,15 +96,46 @@ def _trimesh(vertices, faces):
 
 
 def _subdivide(mesh, max_edge: float = _MAX_EDGE_MM):
-    """Uniform 1->4 subdivision (keeps the mesh watertight) until edges are <= ``max_edge``."""
-    import trimesh
+    """Split every edge longer than ``max_edge`` at its midpoint until none is left.
 
-    v, f = np.asarray(mesh.vertices), np.asarray(mesh.faces)
-    while len(f) * 4 <= _MAX_FACES:
-        edges = np.linalg.norm(v[f] - v[np.roll(f, 1, axis=1)], axis=-1)
-        if edges.max() <= max_edge:
+    A split edge is split in both of its faces, so the mesh stays watertight; faces are
+    re-triangulated by how many of their edges were split (1 -> 2, 2 -> 3, 3 -> 4 triangles),
+    keeping their orientation.
+    """
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    while len(f) < _MAX_FACES:
+        e = np.stack([f[:, [1, 2]], f[:, [2, 0]], f[:, [0, 1]]], axis=1)  # edge i is opposite vertex i
+        uniq, inv = np.unique(np.sort(e, axis=2).reshape(-1, 2), axis=0, return_inverse=True)
+        inv = inv.reshape(-1, 3)
+        long_ = np.linalg.norm(v[uniq[:, 0]] - v[uniq[:, 1]], axis=1) > max_edge
+        if not long_.any():
             break
-        v, f = trimesh.remesh.subdivide(v, f)
+        mid = np.full(len(uniq), -1)
+        mid[long_] = len(v) + np.arange(int(long_.sum()))
+        v = np.concatenate([v, v[uniq[long_]].mean(axis=1)])
+        m = mid[inv]  # (F, 3): midpoint on the edge opposite vertex i, or -1
+        split = m >= 0
+        nsplit = split.sum(axis=1)
+        out = [f[nsplit == 0]]
+        s3 = nsplit == 3
+        a, b, c = f[s3].T
+        ma, mb, mc = m[s3].T
+        out += [np.c_[a, mc, mb], np.c_[mc, b, ma], np.c_[mb, ma, c], np.c_[ma, mb, mc]]
+        for count, pick in ((1, np.argmax), (2, np.argmin)):
+            sel = nsplit == count
+            k = pick(split[sel], axis=1)  # 1 split: the split edge; 2 splits: the unsplit edge
+            order = (k[:, None] + np.arange(3)) % 3
+            a, b, c = np.take_along_axis(f[sel], order, axis=1).T
+            ma, mb, mc = np.take_along_axis(m[sel], order, axis=1).T
+            if count == 1:  # ma on bc
+                out += [np.c_[a, b, ma], np.c_[a, ma, c]]
+            else:  # mb on ca, mc on ab; the quad mc-b-c-mb is cut along its shorter diagonal
+                out.append(np.c_[a, mc, mb])
+                short = np.linalg.norm(v[mc] - v[c], axis=1) <= np.linalg.norm(v[b] - v[mb], axis=1)
+                out += [np.c_[mc, b, c][short], np.c_[mc, c, mb][short],
+                        np.c_[mc, b, mb][~short], np.c_[b, c, mb][~short]]
+        f = np.concatenate(out)
     return _trimesh(v, f)
 
 

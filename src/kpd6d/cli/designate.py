@@ -39,11 +39,18 @@ def run(cfg) -> Path:
     points, reused = designate_objects(models, name, des, cache, progress=progress)
     ov = c.get("overview") or {}
     if ov.get("enabled", True):
-        for m in tqdm(models, desc="overview PNGs", unit="object", disable=not progress):
-            title = f"obj {m.obj_id} {m.name}: {len(points[m.obj_id])} {name} keypoints"
-            img = render_overview(m, points[m.obj_id], num_views=int(ov.get("num_views", 6)),
-                                  image_size=int(ov.get("image_size", 320)), title=title)
-            write_png(out_dir / f"obj_{m.obj_id:06d}.png", img)
+        from kpd6d.render import Renderer
+
+        size = int(ov.get("image_size", 320))
+        renderer = Renderer(size, size)  # one OpenGL context for all objects (K is set per object)
+        try:
+            for m in tqdm(models, desc="overview PNGs", unit="object", disable=not progress):
+                title = f"obj {m.obj_id} {m.name}: {len(points[m.obj_id])} {name} keypoints"
+                img = render_overview(m, points[m.obj_id], num_views=int(ov.get("num_views", 6)),
+                                      image_size=size, title=title, renderer=renderer)
+                write_png(out_dir / f"obj_{m.obj_id:06d}.png", img)
+        finally:
+            renderer.close()
     print(f"kpd6d-designate: {len(points)} object(s) ({len(reused)} from the cache) -> {cache}")
     return cache
 

@@ -22,7 +22,8 @@ __all__ = ["DEFAULT_AUGMENT", "DEFAULT_OPTIMIZER", "DetectorModule"]
 
 #: The paper's YOLO recipe: SGD, lr 1e-3 divided by 10 every 100 epochs.
 DEFAULT_OPTIMIZER = {"name": "sgd", "lr": 1e-3, "momentum": 0.9, "weight_decay": 5e-4,
-                     "schedule": "step", "step_epochs": 100, "gamma": 0.1, "warmup_steps": 0}
+                     "schedule": "step", "step_epochs": 100, "gamma": 0.1, "warmup_steps": 0,
+                     "minutes": 0.0}
 #: HSV changes up to 1.5x, random scale ±20%.
 DEFAULT_AUGMENT = {"enabled": True, "hsv": 1.5, "hue": 0.0, "scale": 0.2, "translate": 0.0}
 
@@ -118,11 +119,26 @@ class DetectorModule(pl.LightningModule):
             def factor(it: int) -> float:
                 w = min(1.0, (it + 1) / warm) if warm else 1.0
                 return w * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(it, total) / total)))
+        elif c["schedule"] == "cosine_time":  # cosine over a wall-clock budget (CPU runs capped by max_time)
+            import math
+            import time
+
+            budget = float(c["minutes"]) * 60.0
+            if budget <= 0:
+                raise ValueError("schedule cosine_time needs optimizer.minutes > 0 (the training time budget)")
+            start: list[float] = []
+
+            def factor(it: int) -> float:
+                if not start:
+                    start.append(time.monotonic())
+                frac = min((time.monotonic() - start[0]) / budget, 1.0)
+                w = min(1.0, (it + 1) / warm) if warm else 1.0
+                return w * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * frac)))
         elif c["schedule"] == "constant":
             def factor(it: int) -> float:
                 return min(1.0, (it + 1) / warm) if warm else 1.0
         else:
-            raise ValueError(f"unknown schedule {c['schedule']!r}; known: step, cosine, constant")
+            raise ValueError(f"unknown schedule {c['schedule']!r}; known: step, cosine, cosine_time, constant")
         sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
         return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
 

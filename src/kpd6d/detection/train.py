@@ -114,8 +114,13 @@ def train_detector(cfg: Any) -> Path:
     if val_split and (Path(root) / val_split).is_dir():
         val_ds = DetectionDataset(root, val_split, obj_ids=det_cfg["obj_ids"], **common)
 
+    optimizer = dict(recipe.get("optimizer") or {})
+    if optimizer.get("schedule") == "cosine_time":
+        if not st.get("max_minutes"):
+            raise ValueError("stage.recipe uses schedule cosine_time: set stage.max_minutes (the time budget)")
+        optimizer["minutes"] = float(st["max_minutes"])
     stats_path = run_dir / "box_stats.json"
-    module = DetectorModule(det_cfg, optimizer=recipe.get("optimizer"), augment=st.get("augment"),
+    module = DetectorModule(det_cfg, optimizer=optimizer, augment=st.get("augment"),
                             eval_score_threshold=float(st.get("eval_score_threshold", 0.01)),
                             box_stats_iou=float(st.get("box_stats_iou", 0.5)), stats_path=str(stats_path), seed=seed)
     bs, workers = int(st.get("batch_size", 8)), int(st.get("num_workers", 0))

@@ -149,11 +149,15 @@ def test_sift_untextured_and_fill_warning(objs, caplog):
 
 
 @pytest.mark.lmo
+@pytest.mark.slow
 def test_sift_on_lmo_meshes(lmo_models):
     """Done-when: 50 points within 1 mm of the surface, none closer than 5% of the diameter
-    (reduced views/resolution to fit the test budget; defaults are timed by the benchmark)."""
+    (reduced views/resolution except for the eggbox, to fit the test budget; the benchmark times the
+    defaults on all eight)."""
     for m in lmo_models:
-        d = DESIGNATORS.build("sift", num_keypoints=50, num_views=24, image_size=160)
+        # the eggbox (symmetric) runs with the default settings of conf/designator/sift.yaml
+        small = {} if m.obj_id == 10 else {"num_views": 24, "image_size": 160}
+        d = DESIGNATORS.build("sift", num_keypoints=50, **small)
         kp = d(m)
         assert kp.shape == (50, 3), m.obj_id
         assert _surface_distance(m, kp).max() < 1.0, m.obj_id

@@ -101,7 +101,7 @@ def _profile(args) -> None:
 def _options(args) -> dict:
     return dict(width=args.width, height=args.height, objects_per_image=(1, 1),
                 distractors=(args.occluders, args.occluders), rgb_format=args.rgb_format,
-                depth=args.depth, designator=None)
+                depth=args.depth, antialias=args.antialias, designator=None)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -114,6 +114,7 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--occluders", type=int, default=1)
     ap.add_argument("--rgb-format", default="jpg", choices=["jpg", "png"])
     ap.add_argument("--depth", action="store_true")
+    ap.add_argument("--antialias", action="store_true", help="4x multisampled colour pass")
     ap.add_argument("--models-dir", default=None, help="BOP models folder (default: procedural objects)")
     ap.add_argument("--out", default=None, help="keep the dataset here (default: a temporary folder, deleted)")
     ap.add_argument("--profile", type=int, default=0, metavar="N", help="also profile N images in one process")
@@ -140,7 +141,8 @@ def main(argv: list[str] | None = None) -> int:
         wall, cpu_s = time.perf_counter() - t0, cpu() - c0
         steady, n = _steady_rate(root, "train")
         print(f"kpd6d-benchmark generate: {args.num_images} images {args.width}x{args.height}, 1 object + "
-              f"{args.occluders} occluder(s), rgb {args.rgb_format}{', depth' if args.depth else ''}, "
+              f"{args.occluders} occluder(s), rgb {args.rgb_format}{', depth' if args.depth else ''}"
+              f"{', antialias' if args.antialias else ''}, "
               f"{workers} worker(s), {os.cpu_count()} cores")
         print(f"  total : {args.num_images / wall:6.1f} images/s  ({wall:.1f} s incl. start-up and models)")
         print(f"  steady: {steady:6.1f} images/s  (first to last image written, {n} images)")

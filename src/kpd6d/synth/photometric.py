@@ -53,13 +53,14 @@ def apply_photometric(img: np.ndarray, rng: np.random.Generator, cfg: Photometri
     if do_color:
         gain = float(rng.uniform(*cfg.contrast)) * (1.0 + rng.uniform(-cfg.channel_gain, cfg.channel_gain, 3))
         bias = rng.uniform(-cfg.brightness, cfg.brightness) * 255.0
-        mean = out.reshape(-1, 3).mean(0)
+        mean = np.asarray(cv2.mean(out)[:3])
         # out = gain * (img - mean) + mean + bias, as a per-channel lookup table (fast)
-        lut = np.clip(gain[None, :] * (np.arange(256)[:, None] - mean[None, :]) + mean[None, :] + bias, 0, 255)
-        lut = lut.astype(np.uint8)
-        out = np.stack([cv2.LUT(out[..., c], lut[:, c]) for c in range(3)], axis=-1)
-    if do_noise:
+        lut = np.clip(gain[None, :] * (np.arange(256)[:, None] - mean[None, :]) + mean[None, :] + bias + 0.5, 0, 255)
+        out = cv2.LUT(out, lut.astype(np.uint8).reshape(256, 1, 3))
+    if do_noise:  # grey (luminance) Gaussian noise; OpenCV's generator, seeded from rng (fast)
         sigma = float(rng.uniform(*cfg.noise_sigma))
-        noise = rng.normal(0.0, sigma, (*out.shape[:2], 1)).astype(np.float32)
-        out = np.clip(out.astype(np.float32) + noise, 0, 255).astype(np.uint8)
+        cv2.setRNGSeed(int(rng.integers(0, 2**31 - 1)))
+        noise = np.empty(out.shape[:2], np.float32)
+        cv2.randn(noise, 0.0, sigma)
+        out = cv2.add(out, cv2.merge([noise, noise, noise]), dtype=cv2.CV_8U)
     return np.ascontiguousarray(out)

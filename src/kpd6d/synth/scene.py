@@ -17,7 +17,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kpd6d.data.bop_io import bbox_from_mask
-from kpd6d.geometry import project_points
+from kpd6d.geometry import bbox_from_points, project_points
 from kpd6d.synth.config import SynthConfig
 from kpd6d.synth.photometric import PhotometricConfig, apply_photometric
 from kpd6d.synth.poses import ModelGeometry, projected_box, sample_object_pose
@@ -62,8 +62,9 @@ def bbox_obj_from_uv(uv: np.ndarray) -> list[int]:
     """BOP box (x, y, w, h) of the silhouette of projected vertices ``uv`` (N, 2), as pixel indices
     (bop_toolkit's ``calc_2d_bbox`` of the rendered silhouette): with pixel centres at integer
     coordinates the covered pixels run from ``ceil(min)`` to ``floor(max)``."""
-    lo = np.ceil(uv.min(axis=0)).astype(np.int64)
-    hi = np.floor(uv.max(axis=0)).astype(np.int64)
+    x, y, w, h = bbox_from_points(uv)
+    lo = np.ceil([x, y]).astype(np.int64)
+    hi = np.floor([x + w, y + h]).astype(np.int64)
     w, h = (int(v) for v in np.maximum(hi - lo, 0))
     return [int(lo[0]), int(lo[1]), w, h]
 

@@ -483,3 +483,22 @@ def test_generate_yaml_defaults_match_the_python_api():
     a.pop("photometric"), b.pop("photometric")
     assert a == b
     assert (cfg.num_images, cfg.split, cfg.seed) == (1000, "train", 0)
+
+
+def test_renderer_keeps_cached_meshes_uploaded(monkeypatch):
+    """Alternating meshes are uploaded to the GL context once each (a generator speed feature)."""
+    import pyrender
+    import trimesh
+
+    from kpd6d.render import Renderer
+
+    calls = []
+    orig = pyrender.primitive.Primitive._add_to_context
+    monkeypatch.setattr(pyrender.primitive.Primitive, "_add_to_context", lambda self: calls.append(1) or orig(self))
+    r = Renderer(160, 120, default_K(160, 120), antialias=False)
+    a, b = trimesh.creation.box((50.0, 50.0, 50.0)), trimesh.creation.icosphere(radius=30.0)
+    R, t = np.eye(3), np.array([0.0, 0.0, 500.0])
+    px = [int(r.render([(m, R, t)]).masks_visib[0].sum()) for m in (a, b, a, b, a)]
+    r.close()
+    assert len(calls) == 2
+    assert px[0] == px[2] == px[4] > 0 and px[1] == px[3] > 0 and px[0] != px[1]

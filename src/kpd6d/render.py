@@ -103,6 +103,31 @@ class Renderer:
         self._cache: dict[int, tuple] = {}
         if not self.antialias:
             self._single_sample_framebuffer()
+        self._keep_cached_meshes_resident()
+
+    def _keep_cached_meshes_resident(self) -> None:
+        """Keep every cached mesh's buffers in the GL context between renders.
+
+        pyrender deletes the GL buffers of meshes missing from the scene being rendered and uploads
+        them again when they come back (tens of ms for a dense mesh on a CPU). Here its context update
+        leaves cached meshes alone; meshes dropped from the cache are deleted as usual.
+        """
+        inner = getattr(self._renderer, "_renderer", None)
+        if inner is None or not hasattr(inner, "_update_context"):  # pragma: no cover
+            return
+        orig = inner._update_context
+        cache = self._cache
+
+        def update_context(scene, flags):
+            resident = {entry[0] for entry in cache.values()}
+            hold = (inner._meshes - scene.meshes) & resident
+            inner._meshes -= hold
+            try:
+                return orig(scene, flags)
+            finally:
+                inner._meshes |= hold
+
+        inner._update_context = update_context
 
     def _single_sample_framebuffer(self) -> None:
         """Create pyrender's main framebuffer now, with 1 sample instead of its hard-coded 4.
@@ -214,13 +239,6 @@ class Renderer:
             node = pyrender.Node(mesh=self._pymesh(mesh, lighting.specular), matrix=cv_pose_to_gl_model_view(R, t))
             scene.add_node(node)
             nodes.append(node)
-        # keep every cached mesh in the GL context: pyrender deletes the buffers of meshes missing from
-        # the scene and re-uploads them when they come back; invisible nodes hold them at no draw cost
-        used = {id(n.mesh) for n in nodes}
-        for pm, _, _ in self._cache.values():
-            pm.is_visible = id(pm) in used
-            if id(pm) not in used:
-                scene.add_node(pyrender.Node(mesh=pm))
         if depth_only:
             rgb = np.zeros((self.height, self.width, 3), np.uint8)
         else:

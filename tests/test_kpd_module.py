@@ -185,3 +185,16 @@ def test_optimizer_and_scheduler_config():
     assert isinstance(_module().configure_optimizers(), torch.optim.Adam)
     with pytest.raises(ValueError, match="unknown optimizer 'lion'"):
         _module(optimizer={"name": "lion"}).configure_optimizers()
+
+
+def test_bf16_autocast_forward_loss_and_decode():
+    module = _module()
+    _, items = _scene(module, n=2, seed=4)
+    b = _collate(items)
+    with torch.autocast("cpu", dtype=torch.bfloat16):
+        pred = module(b["image"], b["obj_index"])
+        loss = module.heatmap_loss(pred, module.targets(b["keypoints"]), b["visibility"])
+    assert pred.dtype == torch.bfloat16 and loss.dtype == torch.float32 and torch.isfinite(loss)
+    loss.backward()
+    kp, conf = module.decode(pred)
+    assert kp.dtype == torch.float32 and torch.isfinite(kp).all() and conf.shape == (2, K_PTS)

@@ -216,7 +216,8 @@ class Renderer:
         return depth, label
 
     def render(self, instances, *, lighting: Lighting | None = None, K: np.ndarray | None = None,
-               full_masks: bool | Sequence[int] = False, depth_only: bool = False) -> RenderResult:
+               full_masks: bool | Sequence[int] = False, depth_only: bool = False,
+               masks: bool = True) -> RenderResult:
         """Render ``instances``: a list of ``(mesh_or_model, R, t)`` (R, t: model -> OpenCV camera, mm).
 
         ``mesh_or_model`` is an :class:`~kpd6d.objects.ObjectModel` or a trimesh mesh (distractors).
@@ -224,6 +225,9 @@ class Renderer:
         segmentation pass, sampled at pixel centres); ``depth_only=True`` skips the colour pass;
         ``full_masks=True`` also renders each instance alone for its unoccluded silhouette (visib ⊆ full);
         a sequence of instance indices renders only those (``masks_full`` holds None for the others).
+        ``masks=False`` skips the segmentation pass: no masks, and the depth is the colour pass's,
+        which is sampled at pixel centres (equal to the segmentation pass's) only when
+        ``antialias=False``.
         """
         pyrender = self._pyrender
         K = self.K if K is None else np.asarray(K, dtype=np.float64)
@@ -242,7 +246,10 @@ class Renderer:
         if depth_only:
             rgb = np.zeros((self.height, self.width, 3), np.uint8)
         else:
-            rgb, _ = self._renderer.render(scene, flags=pyrender.RenderFlags.NONE)
+            rgb, colour_depth = self._renderer.render(scene, flags=pyrender.RenderFlags.NONE)
+            if not masks:
+                return RenderResult(np.ascontiguousarray(rgb[..., :3]), colour_depth.astype(np.float32, copy=False),
+                                    [], [])
         if nodes:
             depth, label = self._seg_pass(scene, nodes)
         else:

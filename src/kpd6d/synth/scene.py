@@ -1,6 +1,14 @@
 """Compose one synthetic image: sample poses, render all objects and occluders in one scene (so that
 mutual occlusion is right), paste them over a background, and compute the BOP ground truth.
 
+Passes (``antialias: false``, the default): a colour pass of everything, whose depth (single-sampled)
+is the pixel-centre depth of the whole scene, and a segmentation pass of the objects alone; an
+object's visible mask is its objects-alone mask minus the pixels where the full scene is nearer
+(an occluder in front), and its objects-alone mask is its silhouette as far as occluders go. An
+object-alone pass is only added when other objects may cover it or it leaves the image. With
+``antialias: true`` the colour pass is multisampled (its depth is not pixel-centre exact), so a
+segmentation pass of the whole scene gives the masks instead.
+
 Ground truth follows bop_toolkit's ``calc_gt_info``: ``bbox_obj`` is the box of the whole silhouette
 (including any part outside the image; here from the projected model vertices, as pixel indices:
 ``x = ceil(u_min)``, ``w = floor(u_max) - x``; ``[-1, -1, -1, -1]`` when nothing is visible, as
@@ -180,22 +188,40 @@ class SceneComposer:
             d = int(rng.integers(len(self.distractors)))
             d_items.append((self.distractors[d], *self._distractor_pose(rng, d, box, tz, self.geoms[k].radius)))
         items = [(self.models[k], R, t) for k, (R, t) in zip(chosen, poses)] + d_items
-        res = self.renderer.render(items, lighting=lighting, K=self.K)
+        n = len(chosen)
+        if d_items and not cfg.antialias:
+            # two passes: colour of everything (with a single-sampled framebuffer its depth is the
+            # pixel-centre depth) and a segmentation pass of the objects alone; an object pixel is
+            # visible unless the full scene is nearer there (an occluder in front). The objects-alone
+            # masks are the objects' silhouettes as far as occluders go, so px_count_all needs no
+            # extra pass unless objects cover each other.
+            col = self.renderer.render(items, lighting=lighting, K=self.K, masks=False)
+            seg = self.renderer.render(items[:n], K=self.K, depth_only=True)
+            in_front = col.depth < seg.depth * (1.0 - 1e-6) - 1e-3
+            base = seg.masks_visib
+            masks = [m & ~in_front for m in base]
+            rgb, depth = col.rgb, col.depth
+            coverers = [[base[j] for j in range(n) if j != i] for i in range(n)]
+        else:
+            res = self.renderer.render(items, lighting=lighting, K=self.K)
+            base = masks = res.masks_visib[:n]
+            rgb, depth = res.rgb, res.depth
+            coverers = [[res.masks_visib[j] for j in range(len(items)) if j != i] for i in range(n)]
         instances = []
         for i, k in enumerate(chosen):
             model = self.models[k]
             R, t = poses[i]
-            mask = res.masks_visib[i]
+            mask = masks[i]
             visib = int(np.count_nonzero(mask))
             uv = project_points(self.geoms[k].hull, self.K, R, t)  # same extremes as all vertices
             bbox_obj = bbox_obj_from_uv(uv)
             x, y, w, h = bbox_obj
             # (1 px of slack around the box against rasterization ties)
             inside_image = x >= 1 and y >= 1 and x + w <= self.W - 2 and y + h <= self.H - 2
-            # could anything cover it? only if another rendered item shows inside its box
-            others = [res.masks_visib[j] for j in range(len(items)) if j != i]
+            # could something cover part of base[i]? only if it shows inside the object's box
             x0, y0 = max(x - 1, 0), max(y - 1, 0)
             x1, y1 = min(x + w + 1, self.W - 1) + 1, min(y + h + 1, self.H - 1) + 1
+            others = coverers[i]
             occluded = False
             if x1 > x0 and y1 > y0 and any(np.any(m[y0:y1, x0:x1]) for m in others):
                 # tighter: the silhouette lies in the convex hull of the projected vertices
@@ -203,7 +229,7 @@ class SceneComposer:
                 hull = _hull_mask(uv, x0, y0, x1, y1)
                 occluded = any(np.any(m[y0:y1, x0:x1] & hull) for m in others)
             if inside_image and not occluded:
-                px_all, px_valid = visib, visib
+                px_all = px_valid = int(np.count_nonzero(base[i]))
             else:
                 px_all, px_valid = silhouette_counts(self.renderer, model, R, t, self.K, self.W, self.H, bbox_obj)
             instances.append(SceneInstance(
@@ -212,7 +238,7 @@ class SceneComposer:
                 bbox_visib=bbox_from_mask(mask), px_count_all=px_all, px_count_valid=px_valid,
                 px_count_visib=visib, visib_fract=float(visib / px_all) if px_all > 0 else 0.0,
             ))
-        return res, instances
+        return (rgb, depth), instances
 
     def _violation(self, instances) -> float:
         lo, hi = self.cfg.visib_fract_range
@@ -238,12 +264,12 @@ class SceneComposer:
                 best = (v, res, instances)
             if v == 0:
                 break
-        _, res, instances = best
+        _, (rendered, depth), instances = best
         # paste: the union of all rendered silhouettes (objects and occluders); feathering only
         # softens its inner edge (blends background into the outermost object pixels, no dark halo)
-        alpha = (res.depth > 0).astype(np.float32)
+        alpha = (depth > 0).astype(np.float32)
         if cfg.feather_sigma > 0:
             alpha = np.minimum(alpha, cv2.GaussianBlur(alpha, (0, 0), cfg.feather_sigma))
-        rgb = cv2.blendLinear(np.ascontiguousarray(res.rgb), background, alpha, 1.0 - alpha)
+        rgb = cv2.blendLinear(np.ascontiguousarray(rendered), background, alpha, 1.0 - alpha)
         rgb = apply_photometric(rgb, rng, self.photometric)
-        return SceneSample(rgb=rgb, depth=res.depth, K=self.K.copy(), instances=instances, attempts=attempts)
+        return SceneSample(rgb=rgb, depth=depth, K=self.K.copy(), instances=instances, attempts=attempts)

@@ -502,3 +502,21 @@ def test_renderer_keeps_cached_meshes_uploaded(monkeypatch):
     r.close()
     assert len(calls) == 2
     assert px[0] == px[2] == px[4] > 0 and px[1] == px[3] > 0 and px[0] != px[1]
+
+
+def test_two_pass_and_full_segmentation_paths_agree(tmp_path, models_dir):
+    """antialias=False derives visibility from the colour pass's depth and an objects-only
+    segmentation; antialias=True segments the whole scene. The ground truth must be identical."""
+    run = dict(num_images=6, seed=11, progress=False, objects_per_image=(1, 2), distractors=(1, 2), depth=True,
+               visib_fract_range=(0.0, 1.0), **SMALL)
+    generate_dataset(tmp_path / "fast", models_dir, antialias=False, **run)
+    generate_dataset(tmp_path / "aa", models_dir, antialias=True, **run)
+    fast, aa = tree_bytes(tmp_path / "fast"), tree_bytes(tmp_path / "aa")
+    names = [n for n in fast if "mask_visib" in n or n.endswith(("scene_gt.json", "scene_gt_info.json"))]
+    assert len(names) > 8
+    for n in names:
+        assert fast[n] == aa[n], n
+    info = BopDataset(tmp_path / "fast", "train")
+    assert any(i.visib_fract < 0.95 for f in info for i in f.instances)  # occluders did occlude
+    for f_fast, f_aa in zip(info, BopDataset(tmp_path / "aa", "train")):
+        np.testing.assert_allclose(f_fast.load_depth(), f_aa.load_depth(), atol=0.1)  # stored in 0.1 mm

@@ -273,3 +273,18 @@ def test_torchvision_checkpoint_round_trip(tmp_path):
     loaded = load_detector(save_detector(det, tmp_path / "fcos.pt"))
     x = torch.rand(1, 3, 64, 64)
     torch.testing.assert_close(det.eval().predict(x)[0].scores, loaded.predict(x)[0].scores)
+
+
+def test_postprocess_threshold_cap_one_per_object_and_id_mapping():
+    det = build_detector("centernet", obj_ids=OBJ_IDS, backbone="resnet10t", score_threshold=0.2, max_detections=3)
+    boxes = torch.arange(2 * 5 * 4, dtype=torch.float32).view(2, 5, 4)
+    labels = torch.tensor([[2, 2, 0, 1, 0], [1, 0, 0, 2, 2]])
+    scores = torch.tensor([[0.9, 0.8, 0.5, 0.3, 0.1], [0.6, 0.0, 0.0, 0.0, 0.0]])
+    a, b = det.postprocess(boxes, labels, scores)
+    assert a.obj_ids.tolist() == [11, 11, 3]  # class index -> obj id; capped at 3; 0.1 < threshold
+    torch.testing.assert_close(a.boxes, boxes[0, :3])
+    assert b.obj_ids.tolist() == [7] and b.scores.tolist() == [pytest.approx(0.6)]  # zero scores dropped
+    det.one_per_object, det.max_detections = True, 10
+    a, _ = det.postprocess(boxes, labels, scores)
+    assert a.obj_ids.tolist() == [11, 3, 7]
+    torch.testing.assert_close(a.boxes, boxes[0, [0, 2, 3]])

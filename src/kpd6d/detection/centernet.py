@@ -185,7 +185,9 @@ class CenterNet(Detector):
     def raw_predict(self, images: torch.Tensor):
         out = self(images)
         k = min(self.max_detections * (4 if self.one_per_object else 1), 500)
-        return decode_centernet(torch.sigmoid(out["heatmap"]), out["wh"], out["offset"], self.stride, k)
+        # float32 decoding: bf16 (autocast) box coordinates would be off by pixels
+        return decode_centernet(torch.sigmoid(out["heatmap"].float()), out["wh"].float(), out["offset"].float(),
+                                self.stride, k)
 
     def training_losses(self, images: torch.Tensor, targets: list[dict]) -> dict[str, torch.Tensor]:
         out = self(images)
@@ -194,8 +196,8 @@ class CenterNet(Detector):
                                                            self.min_overlap)
         l_heat = focal_loss(out["heatmap"].float(), heat)
         n = max(int(index.numel()), 1)
-        wh_p = out["wh"].reshape(B, 2, h * w)[bidx, :, index]
-        off_p = out["offset"].reshape(B, 2, h * w)[bidx, :, index]
+        wh_p = out["wh"].float().reshape(B, 2, h * w)[bidx, :, index]
+        off_p = out["offset"].float().reshape(B, 2, h * w)[bidx, :, index]
         l_wh = F.l1_loss(wh_p, wh_t, reduction="sum") / n
         l_off = F.l1_loss(off_p, off_t, reduction="sum") / n
         total = l_heat + self.wh_weight * l_wh + self.offset_weight * l_off

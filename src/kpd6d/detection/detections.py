@@ -203,7 +203,7 @@ class Detector(nn.Module):
 
     def postprocess(self, boxes: torch.Tensor, labels: torch.Tensor, scores: torch.Tensor) -> list[Detections]:
         """Padded (B, K, ...) score-sorted outputs -> list of :class:`Detections` (vectorised masks)."""
-        valid = scores >= max(self.score_threshold, 0.0)
+        valid = (scores >= self.score_threshold) & (scores > 0)  # 0: suppressed / padding entries
         if self.one_per_object and labels.shape[1]:
             valid = keep_best_per_class(labels, valid, max(self.num_classes, int(labels.max()) + 1))
         # stable order: valid entries first (already score-sorted), then cap at max_detections

@@ -31,7 +31,8 @@ DEFAULT_AUGMENT = {"enabled": True, "hsv": 1.5, "hue": 0.0, "scale": 0.2, "trans
 class DetectorModule(pl.LightningModule):
     def __init__(self, detector: Mapping[str, Any], optimizer: Mapping[str, Any] | None = None,
                  augment: Mapping[str, Any] | None = None, eval_score_threshold: float = 0.01,
-                 box_stats_iou: float = 0.5, stats_path: str | None = None, seed: int = 0) -> None:
+                 box_stats_iou: float = 0.5, stats_path: str | None = None, seed: int = 0,
+                 channels_last: bool = True) -> None:
         super().__init__()
         self.save_hyperparameters()
         self.detector = build_from_cfg(DETECTORS, dict(detector))
@@ -50,6 +51,9 @@ class DetectorModule(pl.LightningModule):
         self.stats_path = stats_path
         self._gen = torch.Generator().manual_seed(int(seed))
         self.box_stats_iou = float(box_stats_iou)
+        self.channels_last = bool(channels_last)
+        if self.channels_last:  # NHWC convolutions: markedly faster on CPU (oneDNN), neutral elsewhere
+            self.detector.to(memory_format=torch.channels_last)
 
     # -- training -----------------------------------------------------------------------------
     def training_step(self, batch, batch_idx):
@@ -59,6 +63,8 @@ class DetectorModule(pl.LightningModule):
 
             a = self.aug_cfg
             images, targets = augment_batch(images, targets, self._gen, a["hsv"], a["hue"], a["scale"], a["translate"])
+        if self.channels_last:
+            images = images.contiguous(memory_format=torch.channels_last)
         losses = self.detector.training_losses(images, targets)
         B = images.shape[0]
         for k, v in losses.items():

@@ -122,7 +122,8 @@ def train_detector(cfg: Any) -> Path:
     stats_path = run_dir / "box_stats.json"
     module = DetectorModule(det_cfg, optimizer=optimizer, augment=st.get("augment"),
                             eval_score_threshold=float(st.get("eval_score_threshold", 0.01)),
-                            box_stats_iou=float(st.get("box_stats_iou", 0.5)), stats_path=str(stats_path), seed=seed)
+                            box_stats_iou=float(st.get("box_stats_iou", 0.5)), stats_path=str(stats_path), seed=seed,
+                            channels_last=bool(st.get("channels_last", True)))
     bs, workers = int(st.get("batch_size", 8)), int(st.get("num_workers", 0))
     train_dl = DataLoader(train_ds, batch_size=bs, shuffle=True, num_workers=workers, collate_fn=collate_detection,
                           drop_last=len(train_ds) > bs, persistent_workers=workers > 0)
@@ -141,13 +142,13 @@ def train_detector(cfg: Any) -> Path:
         max_time={"minutes": float(max_minutes)} if max_minutes else None,
         accelerator=st.get("accelerator", "auto"),
         devices=1,
+        precision=st.get("precision") or "32-true",
         logger=[TensorBoardLogger(str(run_dir), name="tb", version=""), CSVLogger(str(run_dir), name="csv", version="")],
         callbacks=callbacks,
         check_val_every_n_epoch=int(st.get("val_every_n_epochs", 1)),
         log_every_n_steps=int(st.get("log_every_n_steps", 10)),
         num_sanity_val_steps=0,
         enable_progress_bar=True,
-        limit_train_batches=st.get("limit_train_batches") or 1.0,
     )
     last = ckpt_dir / "last.ckpt"
     ckpt_path = str(last) if st.get("resume", True) and last.is_file() else None

@@ -110,3 +110,25 @@ def test_masks_without_full_are_consistent(renderer, objs):
     one = renderer.render([insts[0]], full_masks=True)
     assert np.array_equal(one.masks_visib[0], one.depth > 0)
     assert np.array_equal(one.masks_full[0], one.masks_visib[0])
+
+
+def test_torchvision_ops_import_after_a_render_does_not_crash(tmp_path):
+    """Mesa's llvmpipe and triton both bundle LLVM: importing triton (via torchvision.ops) after the
+    first render used to kill the process with a segmentation fault. Run it in a fresh process."""
+    import subprocess
+    import sys
+    import textwrap
+
+    code = textwrap.dedent("""
+        from kpd6d.objects import procedural_objects
+        from kpd6d.render import Renderer
+        from kpd6d.geometry import LINEMOD_K, pose_from_view
+        m = procedural_objects(obj_ids=[1])[0]
+        R, t = pose_from_view(0.3, 0.4, 500.0)
+        K = LINEMOD_K * [[0.25], [0.25], [1.0]]
+        assert Renderer(160, 120, K).render([(m, R, t)]).masks_visib[0].any()
+        import torchvision.ops  # noqa: F401
+        print("survived")
+    """)
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0 and "survived" in out.stdout, out.stderr[-2000:]

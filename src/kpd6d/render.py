@@ -11,6 +11,22 @@ import os
 
 os.environ.setdefault("PYOPENGL_PLATFORM", "egl")
 
+
+def _load_triton_before_mesa() -> None:
+    """Load triton's LLVM before Mesa's llvmpipe brings its own.
+
+    Both bundle LLVM; when Mesa's is loaded first (the first render on a CPU-only machine), a later
+    ``import triton`` (torchvision.ops, torch._dynamo) crashes the process with a segmentation fault.
+    Loaded in this order both work. Absent triton (CPU torch builds), nothing to do.
+    """
+    try:
+        import triton  # noqa: F401
+    except Exception:  # not installed, or unusable here: nothing can conflict then
+        pass
+
+
+_load_triton_before_mesa()
+
 from collections.abc import Sequence
 from dataclasses import dataclass, field
 

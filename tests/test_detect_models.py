@@ -17,6 +17,15 @@ from kpd6d.registry import DETECTORS, UnknownNameError, build_from_cfg
 OBJ_IDS = [3, 7, 11]
 
 
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """pytest -n 2 already fills both cores; more torch threads per worker only contend."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
 def _check_detections(dets, n_images, device="cpu", max_det=None, obj_ids=OBJ_IDS):
     assert isinstance(dets, list) and len(dets) == n_images
     for d in dets:

@@ -257,3 +257,27 @@ def test_module_rejects_bad_settings():
         DetectorModule(cfg, augment={"flip": 0.5})
     with pytest.raises(ValueError, match="not trainable"):
         DetectorModule({"name": "oracle"})
+
+
+def test_prepare_data_generates_a_procedural_dataset_when_root_is_null(tmp_path):
+    from omegaconf import OmegaConf
+
+    from kpd6d.detection.train import prepare_data
+
+    cfg = OmegaConf.create({
+        "data": {"root": None, "train_split": "train", "val_split": "val"},
+        "stage": {"generate": {"obj_ids": [1, 2, 3], "num_train": 2, "num_val": 1, "seed": 1, "workers": 1,
+                               "options": {"width": 64, "height": 48, "objects_per_image": [2, 3],
+                                           "designator": None}}},
+    })
+    root = prepare_data(cfg, tmp_path)
+    assert root == tmp_path / "data"
+    train = DetectionDataset(root, "train", input_size=None, min_visib_fract=0.0)
+    val = DetectionDataset(root, "val", input_size=None, min_visib_fract=0.0)
+    assert len(train) == 2 and len(val) == 1
+    assert set(train.obj_ids) <= {1, 2, 3}
+    img, t = train[0]
+    assert img.shape == (3, 48, 64) and len(t["obj_ids"]) >= 1
+    cfg.data.root = str(tmp_path / "missing")
+    with pytest.raises(FileNotFoundError, match="missing"):
+        prepare_data(cfg, tmp_path)

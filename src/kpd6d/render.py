@@ -27,12 +27,12 @@ def _load_triton_before_mesa() -> None:
 
 _load_triton_before_mesa()
 
-from collections.abc import Sequence
-from dataclasses import dataclass, field
+from collections.abc import Sequence  # noqa: E402
+from dataclasses import dataclass, field  # noqa: E402
 
-import numpy as np
+import numpy as np  # noqa: E402
 
-from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K, cv_pose_to_gl_model_view
+from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K, cv_pose_to_gl_model_view  # noqa: E402
 
 __all__ = ["Light", "Lighting", "RenderResult", "Renderer"]
 

@@ -130,6 +130,7 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     from omegaconf import OmegaConf
 
     from kpd6d.cli.evaluate import run_evaluation
+    from kpd6d.data import atomic_write_text
 
     t_start = time.time()
     run_dir = Path(run_dir)
@@ -163,7 +164,5 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     timings["total_s"] = time.time() - t_start
     metrics["run"] = {**metrics.get("run", {}), "timings": timings,
                       "config": OmegaConf.to_container(cfg, resolve=True)}
-    tmp = run_dir / "metrics.json.tmp"
-    tmp.write_text(json.dumps(metrics, indent=1, default=float))
-    tmp.replace(run_dir / "metrics.json")
+    atomic_write_text(run_dir / "metrics.json", json.dumps(metrics, indent=1, default=float))
     return metrics

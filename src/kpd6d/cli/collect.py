@@ -16,12 +16,15 @@ from __future__ import annotations
 
 import argparse
 import csv
+import io
 import json
 import math
 import os
 import sys
 from pathlib import Path
 from typing import Any
+
+from kpd6d.data import atomic_write_text
 
 __all__ = ["collect", "find_runs", "main"]
 
@@ -93,15 +96,14 @@ def collect(root: str | os.PathLike, out: str | os.PathLike | None = None) -> di
 
     # CSV: everything
     header = ["run", *override_keys, *mean_keys, *[f"obj{o}.{k}" for o in obj_ids for k in obj_keys]]
-    tmp = out / ".summary.csv.tmp"
-    with tmp.open("w", newline="") as fh:
-        w = csv.writer(fh)
-        w.writerow(header)
-        for r in rows:
-            w.writerow([r["run"], *[r["overrides"].get(k, "") for k in override_keys],
-                        *[_fmt(r["mean"].get(k)) for k in mean_keys],
-                        *[_fmt(r["per_object"].get(o, {}).get(k)) for o in obj_ids for k in obj_keys]])
-    os.replace(tmp, out / "summary.csv")
+    fh = io.StringIO()
+    w = csv.writer(fh)
+    w.writerow(header)
+    for r in rows:
+        w.writerow([r["run"], *[r["overrides"].get(k, "") for k in override_keys],
+                    *[_fmt(r["mean"].get(k)) for k in mean_keys],
+                    *[_fmt(r["per_object"].get(o, {}).get(k)) for o in obj_ids for k in obj_keys]])
+    atomic_write_text(out / "summary.csv", fh.getvalue())
 
     # Markdown: overrides that vary + mean metrics
     cols = varied or override_keys
@@ -114,8 +116,7 @@ def collect(root: str | os.PathLike, out: str | os.PathLike | None = None) -> di
     plots = _plots(rows, varied, out)
     if plots:
         lines += ["", *[f"![{p.stem}]({p.name})" for p in plots]]
-    (out / ".summary.md.tmp").write_text("\n".join(lines) + "\n")
-    os.replace(out / ".summary.md.tmp", out / "summary.md")
+    atomic_write_text(out / "summary.md", "\n".join(lines) + "\n")
     return {"rows": rows, "varied": varied, "plots": [str(p) for p in plots],
             "csv": str(out / "summary.csv"), "markdown": str(out / "summary.md")}
 
@@ -144,9 +145,11 @@ def _plots(rows, varied, out: Path) -> list[Path]:
     matplotlib.use("Agg")
     import matplotlib.pyplot as plt
 
+    from kpd6d.evaluation.report import save_figure
+
     made = []
     mean_keys = sorted({k for r in rows for k in r["mean"]})
-    acc_keys = [k for k in (_pick(mean_keys, "add_s_0.1d", "add_0.1d", "add"), _pick(mean_keys, "proj2d_5px", "proj2d"))
+    acc_keys = [k for k in (_pick(mean_keys, "add_s_01d", "add_s_0.1d", "add_0.1d", "add"), _pick(mean_keys, "proj2d_5px", "proj2d"))
                 if k]
     topl_key = next((k for k in varied if k.endswith("top_l")), None)
     if topl_key and acc_keys:
@@ -160,16 +163,13 @@ def _plots(rows, varied, out: Path) -> list[Path]:
         ax.grid(alpha=0.3)
         ax.legend()
         fig.tight_layout()
-        path = out / "accuracy_vs_top_l.png"
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        made.append(path)
+        made.append(save_figure(fig, out / "accuracy_vs_top_l.png", dpi=120))
     for key in varied:
         if key == topl_key:
             continue
         obj_ids = sorted({o for r in rows for o in r["per_object"]}, key=lambda s: (len(s), s))
         okeys = sorted({k for r in rows for v in r["per_object"].values() for k in v})
-        metric = _pick(okeys, "add_s_0.1d", "add_0.1d", "proj2d_5px", "add", "proj2d")
+        metric = _pick(okeys, "add_s_01d", "add_s_0.1d", "add_0.1d", "proj2d_5px", "add", "proj2d")
         if not obj_ids or not metric:
             continue
         values = sorted({r["overrides"].get(key, "") for r in rows})
@@ -184,10 +184,7 @@ def _plots(rows, varied, out: Path) -> list[Path]:
         ax.legend(fontsize=8)
         ax.grid(axis="y", alpha=0.3)
         fig.tight_layout()
-        path = out / f"per_object_by_{key.replace('/', '_').replace('.', '_')}.png"
-        fig.savefig(path, dpi=120)
-        plt.close(fig)
-        made.append(path)
+        made.append(save_figure(fig, out / f"per_object_by_{key.replace('/', '_').replace('.', '_')}.png", dpi=120))
     return made
 
 

@@ -14,7 +14,8 @@ def run(cfg) -> Path:
     from omegaconf import OmegaConf
     from tqdm.auto import tqdm
 
-    from kpd6d.keypoints.designate import designate_objects, render_overview, write_png
+    from kpd6d.data import atomic_write_image
+    from kpd6d.keypoints.designate import designate_objects, render_overview
     from kpd6d.objects import load_bop_models, procedural_objects
 
     c = OmegaConf.to_container(cfg, resolve=True)
@@ -48,7 +49,7 @@ def run(cfg) -> Path:
                 title = f"obj {m.obj_id} {m.name}: {len(points[m.obj_id])} {name} keypoints"
                 img = render_overview(m, points[m.obj_id], num_views=int(ov.get("num_views", 6)),
                                       image_size=size, title=title, renderer=renderer)
-                write_png(out_dir / f"obj_{m.obj_id:06d}.png", img)
+                atomic_write_image(out_dir / f"obj_{m.obj_id:06d}.png", img)
         finally:
             renderer.close()
     print(f"kpd6d-designate: {len(points)} object(s) ({len(reused)} from the cache) -> {cache}")

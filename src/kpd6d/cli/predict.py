@@ -19,6 +19,7 @@ import cv2
 import numpy as np
 
 from kpd6d.cli.hydra_app import hydra_main
+from kpd6d.data import atomic_write_image, atomic_write_text
 from kpd6d.geometry import LINEMOD_K
 
 __all__ = ["IMAGE_EXTS", "VIDEO_EXTS", "load_intrinsics", "predict_inputs"]
@@ -59,12 +60,6 @@ def load_intrinsics(path: str | os.PathLike | None) -> np.ndarray:
         raise ValueError(f"{path}: focal lengths must be > 0, got fx={K[0, 0]}, fy={K[1, 1]}")
     return K
 
-
-def _atomic_text(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
 
 def _read_rgb(path: Path) -> np.ndarray:
@@ -140,7 +135,6 @@ def predict_inputs(pipeline, source: str | os.PathLike, K: np.ndarray, out_dir: 
     """Run ``pipeline`` on an image / folder / video and write poses.json, poses.csv and overlays to ``out_dir``."""
     from tqdm import tqdm
 
-    from kpd6d.evaluation.report import atomic_write_png
     from kpd6d.evaluation.results_io import PoseResult, write_bop_results
 
     source, out_dir = Path(source), Path(out_dir)
@@ -172,7 +166,7 @@ def predict_inputs(pipeline, source: str | os.PathLike, K: np.ndarray, out_dir: 
                                                              (ov.shape[1], ov.shape[0]))
                                 writer.write(cv2.cvtColor(ov, cv2.COLOR_RGB2BGR))
                             else:
-                                atomic_write_png(out_dir / "overlays" / f"{Path(name).stem}.png", ov)
+                                atomic_write_image(out_dir / "overlays" / f"{Path(name).stem}.png", ov)
                     bar.update(len(g))
         if writer is not None:
             writer.release()
@@ -183,7 +177,7 @@ def predict_inputs(pipeline, source: str | os.PathLike, K: np.ndarray, out_dir: 
             writer.release()
         if video_tmp and os.path.exists(video_tmp):
             os.unlink(video_tmp)
-    _atomic_text(out_dir / "poses.json", json.dumps({"K": K.tolist(), "frames": entries}, indent=1))
+    atomic_write_text(out_dir / "poses.json", json.dumps({"K": K.tolist(), "frames": entries}, indent=1))
     write_bop_results(out_dir / "poses.csv", results)
     return {"frames": len(entries), "poses": len(results), "out_dir": str(out_dir)}
 

@@ -8,18 +8,10 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
 import sys
-import tempfile
 from pathlib import Path
 
-
-def _write_json_atomic(path: Path, data: dict) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=2)
-    os.replace(tmp, path)
+from kpd6d.data import atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -54,7 +46,7 @@ def main(argv: list[str] | None = None) -> int:
           f"{scores['n_targets']} GT instances)")
     print(f"VSD: {scores['vsd']}")
     if args.json:
-        _write_json_atomic(args.json, scores)
+        atomic_write_text(args.json, json.dumps(scores, indent=2))
         print(f"wrote {args.json}")
     return 0
 

@@ -32,6 +32,7 @@ __all__ = [
     "atomic_write_bytes",
     "atomic_write_image",
     "atomic_write_json",
+    "atomic_write_text",
     "bbox_from_mask",
     "dumps_bop_json",
     "load_camera",
@@ -81,6 +82,11 @@ def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
             pass
         raise
     return path
+
+
+def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
+    """Write ``text`` (UTF-8) to ``path`` atomically."""
+    return atomic_write_bytes(path, text.encode())
 
 
 def dumps_bop_json(data: Any) -> str:

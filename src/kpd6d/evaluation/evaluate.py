@@ -15,14 +15,13 @@ from __future__ import annotations
 
 import json
 import os
-import tempfile
 import time
 from collections.abc import Sequence
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from kpd6d.data import atomic_write_image, atomic_write_json
 from kpd6d.evaluation.errors import add_error, adds_error, proj2d_error
 from kpd6d.evaluation.recall import add_s_accuracy, auc, proj2d_accuracy, recall_at
 from kpd6d.evaluation.results_io import PoseResult, write_bop_results
@@ -33,13 +32,6 @@ PX_THRESHOLDS = np.linspace(0.0, 50.0, 51)  # 2D projection accuracy curve (px)
 ADD_THRESHOLDS = np.linspace(0.0, 0.5, 51)  # ADD(-S) accuracy curve (fraction of the diameter)
 MAX_EVAL_POINTS = 5000
 
-
-def _atomic_json(path: Path, data: Any) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        json.dump(data, f, indent=2)
-    os.replace(tmp, path)
 
 
 def eval_instances(frame) -> list:
@@ -156,7 +148,7 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     from tqdm import tqdm
 
     from kpd6d.evaluation.bop19 import score_bop19_file
-    from kpd6d.evaluation.report import atomic_write_png, draw_overlay, plot_curves, write_report_md
+    from kpd6d.evaluation.report import draw_overlay, plot_curves, write_report_md
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
@@ -219,7 +211,7 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
                 if inst.visib_fract is None or inst.visib_fract >= 0.1:
                     tg[(f.scene_id, f.im_id, inst.obj_id)] = tg.get((f.scene_id, f.im_id, inst.obj_id), 0) + 1
     targets_file = out_dir / "test_targets_bop19.json"
-    _atomic_json(targets_file, [{"scene_id": s, "im_id": i, "obj_id": o, "inst_count": c}
+    atomic_write_json(targets_file, [{"scene_id": s, "im_id": i, "obj_id": o, "inst_count": c}
                                 for (s, i, o), c in sorted(tg.items())])
     try:
         bop = score_bop19_file(out_dir / "results.csv", dataset.root, split=dataset.split,
@@ -242,7 +234,7 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     metrics["stage_seconds_per_frame"] = {k: float(np.mean([r["stages"].get(k, 0.0) for r in recs])) for k in stage_keys}
     metrics["run"] = {**(run_info or {}), "dataset": str(dataset.root), "split": dataset.split, "frames": len(frames),
                       "batch_size": batch_size, "oracle": oracle}
-    _atomic_json(out_dir / "metrics.json", metrics)
+    atomic_write_json(out_dir / "metrics.json", metrics)
 
     # plots, overlays, report
     plot_curves(metrics, out_dir)
@@ -253,7 +245,7 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
         img = draw_overlay(f.load_rgb(), f.K, corners, [(i.obj_id, i.R, i.t) for i in eval_instances(f)],
                            [(p["obj_id"], np.asarray(p["R"]), np.asarray(p["t"])) for p in rec["preds"] if p["ok"]])
         name = f"overlays/{f.scene_id:06d}_{f.im_id:06d}.png"
-        atomic_write_png(out_dir / name, img)
+        atomic_write_image(out_dir / name, img)
         overlays.append(name)
     write_report_md(metrics, out_dir / "report.md", overlays)
     return metrics

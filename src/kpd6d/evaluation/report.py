@@ -4,13 +4,14 @@
 
 from __future__ import annotations
 
+import io
 import os
-import tempfile
 from pathlib import Path
 
 import cv2
 import numpy as np
 
+from kpd6d.data import atomic_write_bytes, atomic_write_text
 from kpd6d.geometry import project_points
 
 __all__ = ["GT_COLOR", "PRED_COLOR", "draw_box_3d", "draw_overlay", "plot_curves", "write_report_md"]
@@ -22,29 +23,7 @@ PRED_COLOR = (30, 90, 255)  # RGB blue
 _EDGES = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
 
 
-def _atomic_write_text(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "w") as f:
-        f.write(text)
-    os.replace(tmp, path)
 
-
-def atomic_write_png(path: Path, rgb: np.ndarray) -> None:
-    """Write an RGB uint8 image as PNG atomically."""
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(np.ascontiguousarray(rgb), cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    with os.fdopen(fd, "wb") as f:
-        f.write(buf.tobytes())
-    os.replace(tmp, path)
-
-
-# ---------------------------------------------------------------------------------------------
-# overlays
-# ---------------------------------------------------------------------------------------------
 def draw_box_3d(image: np.ndarray, corners_3d: np.ndarray, K, R, t, color, thickness: int = 2) -> np.ndarray:
     """Draw the projected 3D box (8 corners, x fastest) of a model at pose (R, t) in place; returns the image."""
     R, t = np.asarray(R, float), np.asarray(t, float)
@@ -102,14 +81,18 @@ def plot_curves(metrics: dict, out_dir: str | os.PathLike) -> list[Path]:
         ax.set_title(title)
         ax.legend(fontsize=7, ncol=2, loc="lower right")
         fig.tight_layout()
-        path = out_dir / fname
-        fd, tmp = tempfile.mkstemp(prefix=f".{fname}.", suffix=".png", dir=out_dir)
-        os.close(fd)
-        fig.savefig(tmp)
-        plt.close(fig)
-        os.replace(tmp, path)
-        paths.append(path)
+        paths.append(save_figure(fig, out_dir / fname))
     return paths
+
+
+def save_figure(fig, path: str | os.PathLike, dpi: int = 100) -> Path:
+    """Save a matplotlib figure as PNG atomically and close it."""
+    import matplotlib.pyplot as plt
+
+    buf = io.BytesIO()
+    fig.savefig(buf, format="png", dpi=dpi)
+    plt.close(fig)
+    return atomic_write_bytes(path, buf.getvalue())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -154,5 +137,5 @@ def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] 
         lines.append(f"![overlay]({ov})")
     if overlays:
         lines += ["", "Overlays: ground truth green, prediction blue."]
-    _atomic_write_text(path, "\n".join(lines) + "\n")
+    atomic_write_text(path, "\n".join(lines) + "\n")
     return path

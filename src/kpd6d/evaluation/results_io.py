@@ -12,12 +12,13 @@ import csv
 import io
 import math
 import os
-import tempfile
 from collections.abc import Iterable
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
+
+from kpd6d.data import atomic_write_text
 
 __all__ = ["HEADER", "PoseResult", "ResultsFormatError", "read_bop_results", "write_bop_results"]
 
@@ -115,13 +116,5 @@ def write_bop_results(path: str | os.PathLike, results: Iterable[PoseResult]) ->
             raise ValueError(f"{path}: result for scene {r.scene_id} image {r.im_id} obj {r.obj_id} has R with "
                              f"{R.size} values and t with {t.size}; expected 9 and 3")
         lines.append(f"{int(r.scene_id)},{int(r.im_id)},{int(r.obj_id)},{float(r.score)!r},{_fmt(R)},{_fmt(t)},{float(r.time)!r}")
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "w") as f:
-            f.write("\n".join(lines) + "\n")
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    atomic_write_text(path, "\n".join(lines) + "\n")
     return path

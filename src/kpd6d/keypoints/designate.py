@@ -14,7 +14,6 @@ from __future__ import annotations
 import logging
 import math
 import os
-import tempfile
 from collections.abc import Sequence
 from pathlib import Path
 from typing import Any
@@ -31,7 +30,7 @@ from kpd6d.keypoints.io import (
 )
 from kpd6d.registry import DESIGNATORS
 
-__all__ = ["designate_objects", "render_overview", "write_png"]
+__all__ = ["designate_objects", "render_overview"]
 
 log = logging.getLogger(__name__)
 
@@ -144,24 +143,3 @@ def render_overview(model, points: np.ndarray, *, num_views: int = 6, image_size
         cv2.putText(grid, "filled: visible   ring: far side", (6, grid.shape[0] - 8),
                     cv2.FONT_HERSHEY_SIMPLEX, 0.45, (255, 255, 255), 1, cv2.LINE_AA)
     return grid
-
-
-def write_png(path: str | os.PathLike, rgb: np.ndarray) -> Path:
-    """Write an RGB image as PNG atomically (temporary file + rename)."""
-    import cv2
-
-    path = Path(path)
-    ok, buf = cv2.imencode(".png", cv2.cvtColor(rgb, cv2.COLOR_RGB2BGR))
-    if not ok:
-        raise OSError(f"{path}: PNG encoding failed")
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        with os.fdopen(fd, "wb") as fh:
-            fh.write(buf.tobytes())
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
-    return path

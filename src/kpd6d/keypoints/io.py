@@ -19,7 +19,6 @@ import hashlib
 import json
 import os
 import re
-import tempfile
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -99,19 +98,12 @@ def save_keypoints(path: str | os.PathLike, keypoints: dict[int, Any], *, design
         objects[str(int(oid))] = entry
     doc = {"format": FORMAT, "version": VERSION, "designator": designator,
            "params": _jsonable(dict(params or {})), "objects": objects}
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        text = json.dumps(doc, indent=1)
-        # one line per point: collapse the innermost numeric lists
-        text = re.sub(r"\[\s+([-+0-9.eE,\s]+?)\s+\]", lambda mt: "[" + " ".join(mt.group(1).split()) + "]", text)
-        with os.fdopen(fd, "w") as f:
-            f.write(text)
-        os.replace(tmp, path)
-    except BaseException:
-        if os.path.exists(tmp):
-            os.unlink(tmp)
-        raise
+    from kpd6d.data import atomic_write_text
+
+    text = json.dumps(doc, indent=1)
+    # one line per point: collapse the innermost numeric lists
+    text = re.sub(r"\[\s+([-+0-9.eE,\s]+?)\s+\]", lambda mt: "[" + " ".join(mt.group(1).split()) + "]", text)
+    atomic_write_text(path, text)
     return path
 
 

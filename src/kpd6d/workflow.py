@@ -17,17 +17,12 @@ from __future__ import annotations
 import json
 import time
 from pathlib import Path
-from typing import Any
 
 import numpy as np
 
+from kpd6d.config import to_plain
+
 __all__ = ["run_experiment"]
-
-
-def _plain(node: Any) -> Any:
-    from omegaconf import DictConfig, ListConfig, OmegaConf
-
-    return OmegaConf.to_container(node, resolve=True) if isinstance(node, (DictConfig, ListConfig)) else node
 
 
 def _log(msg: str) -> None:
@@ -38,7 +33,7 @@ def load_objects(objects_cfg) -> list:
     """The run's object models: a BOP models folder or the procedural set."""
     from kpd6d.objects import load_bop_models, procedural_objects
 
-    ids = _plain(objects_cfg.obj_ids)
+    ids = to_plain(objects_cfg.obj_ids)
     if objects_cfg.models_dir:
         return load_bop_models(objects_cfg.models_dir, ids)
     return procedural_objects(obj_ids=ids)
@@ -53,9 +48,9 @@ def designate(models: list, designator_cfg, out_file: Path, per_object: dict | N
     from kpd6d.keypoints import read_keypoint_file, save_keypoints
     from kpd6d.registry import DESIGNATORS, build_from_cfg
 
-    params = _plain(designator_cfg)
+    params = to_plain(designator_cfg)
     name, rest = params["name"], {k: v for k, v in params.items() if k != "name"}
-    per_object = {int(k): dict(v) for k, v in (_plain(per_object) or {}).items()}
+    per_object = {int(k): dict(v) for k, v in (to_plain(per_object) or {}).items()}
     if per_object:
         rest["per_object"] = {str(k): v for k, v in sorted(per_object.items())}
     if out_file.is_file():
@@ -77,13 +72,13 @@ def generate(cfg, root: Path, designator_cfg) -> None:
     from kpd6d.synth import generate_dataset
 
     d = cfg.data
-    options = dict(_plain(d.options) or {})
-    options.setdefault("designator", _plain(designator_cfg))
+    options = dict(to_plain(d.options) or {})
+    options.setdefault("designator", to_plain(designator_cfg))
     for i, (split, n) in enumerate((("train", d.num_train), ("val", d.num_val), (cfg.evaluate.split, d.num_test))):
         if not n:
             continue
         _log(f"generating {n} {split} images into {root}")
-        generate_dataset(root, models_dir=cfg.objects.models_dir, obj_ids=_plain(cfg.objects.obj_ids), num_images=int(n),
+        generate_dataset(root, models_dir=cfg.objects.models_dir, obj_ids=to_plain(cfg.objects.obj_ids), num_images=int(n),
                          split=split, seed=int(cfg.seed) * 1000 + i, workers=int(d.workers), progress=bool(cfg.progress),
                          **options)
 
@@ -91,7 +86,7 @@ def generate(cfg, root: Path, designator_cfg) -> None:
 def _stage_cfg(cfg, stage_key: str, run_dir: Path, root: Path, **extra):
     from omegaconf import OmegaConf
 
-    node = {"seed": int(cfg.seed), "run_dir": str(run_dir), "stage": _plain(cfg[stage_key]),
+    node = {"seed": int(cfg.seed), "run_dir": str(run_dir), "stage": to_plain(cfg[stage_key]),
             "data": {"root": str(root), "train_split": "train", "val_split": "val"}}
     node.update(extra)
     return OmegaConf.create(node)
@@ -105,8 +100,8 @@ def train_detector_stage(cfg, run_dir: Path, root: Path) -> str:
     from kpd6d.detection.train import train_detector
 
     _log("training the detector")
-    det_cfg = _plain(cfg.detector)
-    det_cfg["obj_ids"] = _plain(cfg.objects.obj_ids)
+    det_cfg = to_plain(cfg.detector)
+    det_cfg["obj_ids"] = to_plain(cfg.objects.obj_ids)
     return str(train_detector(_stage_cfg(cfg, "detector_stage", run_dir, root, detector=det_cfg)))
 
 
@@ -120,7 +115,7 @@ def train_kpd_stage(cfg, run_dir: Path, root: Path, keypoints_file: Path) -> str
     _log("training the KPD")
     kcfg = _stage_cfg(cfg, "kpd_stage", run_dir, root)
     kcfg.stage.kpd.keypoints = str(keypoints_file)
-    kcfg.stage.kpd.obj_ids = _plain(cfg.objects.obj_ids)
+    kcfg.stage.kpd.obj_ids = to_plain(cfg.objects.obj_ids)
     train_kpd(kcfg)
     return str(best if best.is_file() else run_dir / "checkpoints" / "last.ckpt")
 
@@ -153,9 +148,9 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     _log(f"evaluating on {root}/{cfg.evaluate.split} (detector: {det})")
     t0 = time.time()
     ecfg = OmegaConf.create({
-        "data": {"root": str(root), "split": cfg.evaluate.split, "targets": "auto", "obj_ids": _plain(cfg.objects.obj_ids),
+        "data": {"root": str(root), "split": cfg.evaluate.split, "targets": "auto", "obj_ids": to_plain(cfg.objects.obj_ids),
                  "max_frames": cfg.evaluate.max_frames},
-        "pnp": _plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
+        "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
         "batch_size": int(cfg.evaluate.batch_size), "device": None, "overlays": int(cfg.evaluate.overlays),
         "progress": bool(cfg.progress),
     })

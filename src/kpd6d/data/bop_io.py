@@ -27,6 +27,8 @@ from typing import Any
 
 import numpy as np
 
+from kpd6d.config import to_plain
+
 __all__ = [
     "BopFormatError",
     "atomic_write_bytes",
@@ -92,11 +94,11 @@ def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
 def dumps_bop_json(data: Any) -> str:
     """JSON text as bop_toolkit writes it: a dict puts one key per line, values compact."""
     if isinstance(data, Mapping):
-        items = [f"  {json.dumps(str(k))}: {json.dumps(_plain(v), sort_keys=True)}" for k, v in data.items()]
+        items = [f"  {json.dumps(str(k))}: {json.dumps(to_plain(v), sort_keys=True)}" for k, v in data.items()]
         return "{\n" + ",\n".join(items) + "\n}\n"
     if isinstance(data, list):
-        return "[\n" + ",\n".join("  " + json.dumps(_plain(v), sort_keys=True) for v in data) + "\n]\n"
-    return json.dumps(_plain(data), sort_keys=True, indent=2) + "\n"
+        return "[\n" + ",\n".join("  " + json.dumps(to_plain(v), sort_keys=True) for v in data) + "\n]\n"
+    return json.dumps(to_plain(data), sort_keys=True, indent=2) + "\n"
 
 
 def atomic_write_json(path: str | os.PathLike, data: Any) -> Path:
@@ -142,21 +144,6 @@ def read_image(path: str | os.PathLike, *, flags: int | None = None) -> np.ndarr
             img = img[..., :3]
         img = np.ascontiguousarray(img[..., ::-1])
     return img
-
-
-def _plain(v: Any) -> Any:
-    """numpy scalars/arrays -> Python values for JSON."""
-    if isinstance(v, np.ndarray):
-        return v.tolist()
-    if isinstance(v, np.integer):
-        return int(v)
-    if isinstance(v, np.floating):
-        return float(v)
-    if isinstance(v, Mapping):
-        return {str(k): _plain(x) for k, x in v.items()}
-    if isinstance(v, list | tuple):
-        return [_plain(x) for x in v]
-    return v
 
 
 # ---------------------------------------------------------------------------------------------

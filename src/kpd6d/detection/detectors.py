@@ -17,6 +17,7 @@ from typing import Any
 
 import torch
 
+from kpd6d.config import to_plain
 from kpd6d.detection.centernet import CenterNet
 from kpd6d.detection.detections import DetectionInputError, Detector
 from kpd6d.detection.oracle import OracleDetector
@@ -35,19 +36,11 @@ def _register(name: str, factory):
     @functools.wraps(factory)
     def build(**params: Any) -> Detector:
         det = factory(**params)
-        det._spec = {"name": name, "params": _plain(params)}
+        det._spec = {"name": name, "params": to_plain(params)}
         return det
 
     DETECTORS.add(name, build)
     return build
-
-
-def _plain(v: Any) -> Any:
-    if isinstance(v, dict):
-        return {str(k): _plain(x) for k, x in v.items()}
-    if isinstance(v, (list, tuple)):
-        return [_plain(x) for x in v]
-    return v
 
 
 _register("centernet", CenterNet)
@@ -156,7 +149,7 @@ def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None,
     except RuntimeError as exc:
         raise DetectionInputError(f"weights in {str(path)!r} do not fit a {rec['name']} detector built from its "
                                   f"recorded parameters: {exc}") from exc
-    det._spec = {"name": rec["name"], "params": _plain(dict(rec["params"], **overrides))}
+    det._spec = {"name": rec["name"], "params": to_plain(dict(rec["params"], **overrides))}
     det.box_stats = rec.get("box_stats")
     det.to(map_location if isinstance(map_location, (str, torch.device)) else "cpu")
     return det.eval()

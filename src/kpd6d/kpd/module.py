@@ -19,6 +19,7 @@ import numpy as np
 import pytorch_lightning as pl
 import torch
 
+from kpd6d.config import to_plain
 from kpd6d.geometry import affine_apply, box_to_crop_affine, invert_affine
 from kpd6d.kpd.heads import KeypointNet
 from kpd6d.kpd.heatmaps import crop_to_heatmap, gaussian_heatmaps, heatmap_to_crop
@@ -26,26 +27,6 @@ from kpd6d.kpd.heatmaps import crop_to_heatmap, gaussian_heatmaps, heatmap_to_cr
 __all__ = ["KPDModule"]
 
 GROUPINGS = ("per_object", "shared")
-
-
-def _plain(x: Any) -> Any:
-    """numpy / OmegaConf values → plain Python (so hyper-parameters pickle and yaml cleanly)."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(x, (DictConfig, ListConfig)):
-            return OmegaConf.to_container(x, resolve=True)
-    except ImportError:  # pragma: no cover
-        pass
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, Mapping):
-        return {k: _plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [_plain(v) for v in x]
-    if isinstance(x, np.generic):
-        return x.item()
-    return x
 
 
 class KPDModule(pl.LightningModule):
@@ -81,17 +62,17 @@ class KPDModule(pl.LightningModule):
         if input_size % out_stride:
             raise ValueError(f"KPDModule: input_size {input_size} must be a multiple of out_stride {out_stride}")
         self.save_hyperparameters({
-            "obj_ids": obj_ids, "keypoints_3d": _plain(kps), "diameters": [float(d) for d in diameters],
+            "obj_ids": obj_ids, "keypoints_3d": to_plain(kps), "diameters": [float(d) for d in diameters],
             "symmetric": [bool(s) for s in (symmetric if symmetric is not None else [False] * n)],
-            "model_points": _plain(model_points) if model_points is not None else None,
-            "symmetries": _plain(symmetries) if symmetries is not None else None,
-            "backbone": _plain(backbone) or {"name": "resnet101"}, "head": _plain(head) or {"name": "deconv"},
+            "model_points": to_plain(model_points) if model_points is not None else None,
+            "symmetries": to_plain(symmetries) if symmetries is not None else None,
+            "backbone": to_plain(backbone) or {"name": "resnet101"}, "head": to_plain(head) or {"name": "deconv"},
             "grouping": grouping, "input_size": int(input_size), "out_stride": int(out_stride),
             "sigma": float(sigma), "crop_scale": float(crop_scale),
-            "decoder": _plain(decoder) or {"name": "subpixel"},
-            "loss": _plain(loss) or {}, "optimizer": _plain(optimizer) or {"name": "adam", "lr": 1e-3},
-            "scheduler": _plain(scheduler), "augment": _plain(augment), "top_l": top_l,
-            "pnp": _plain(pnp) or {"name": "epnp"},
+            "decoder": to_plain(decoder) or {"name": "subpixel"},
+            "loss": to_plain(loss) or {}, "optimizer": to_plain(optimizer) or {"name": "adam", "lr": 1e-3},
+            "scheduler": to_plain(scheduler), "augment": to_plain(augment), "top_l": top_l,
+            "pnp": to_plain(pnp) or {"name": "epnp"},
         })
         hp = self.hparams
         self.num_keypoints = kps[0].shape[0]
@@ -142,7 +123,7 @@ class KPDModule(pl.LightningModule):
             diameters=[m.diameter for m in models], symmetric=[m.is_symmetric for m in models],
             model_points=[m.sample_points(num_points, seed=0) for m in models],
             symmetries=[{"symmetries_discrete": [np.asarray(s).reshape(-1).tolist() for s in m.symmetries_discrete],
-                         "symmetries_continuous": _plain(m.symmetries_continuous)} for m in models],
+                         "symmetries_continuous": to_plain(m.symmetries_continuous)} for m in models],
             **kwargs,
         )
 

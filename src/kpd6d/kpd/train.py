@@ -13,32 +13,12 @@ directory.
 from __future__ import annotations
 
 import json
-import os
 import time
 from pathlib import Path
-from typing import Any
 
-__all__ = ["build_datasets", "generate_if_needed", "run_dir_of", "train_kpd"]
+from kpd6d.config import run_dir_of, to_plain
 
-
-def _plain(node: Any) -> Any:
-    from omegaconf import DictConfig, ListConfig, OmegaConf
-
-    if isinstance(node, (DictConfig, ListConfig)):
-        return OmegaConf.to_container(node, resolve=True)
-    return node
-
-
-def run_dir_of(cfg) -> Path:
-    """Hydra's run directory (or ``cfg.run_dir`` / the working directory outside Hydra)."""
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        if HydraConfig.initialized():
-            return Path(HydraConfig.get().runtime.output_dir)
-    except ImportError:  # pragma: no cover
-        pass
-    return Path(cfg.get("run_dir") or os.getcwd())
+__all__ = ["build_datasets", "generate_if_needed", "train_kpd"]
 
 
 def generate_if_needed(cfg, run_dir: Path) -> Path:
@@ -67,10 +47,16 @@ def build_datasets(cfg, root: Path):
     from kpd6d.kpd.crops import KPDCropDataset
 
     k = cfg.stage.kpd
-    common = dict(obj_ids=_plain(k.obj_ids), input_size=int(k.input_size), out_stride=int(k.out_stride),
+    common = dict(obj_ids=to_plain(k.obj_ids), input_size=int(k.input_size), out_stride=int(k.out_stride),
                   sigma=float(k.sigma), crop_scale=float(k.crop_scale), box_source=k.box_source,
                   detections=k.detections, visibility=k.visibility, min_visib_fract=float(k.min_visib_fract))
-    train = KPDCropDataset(root, split=cfg.data.train_split, box_augment=build_box_augment(_plain(k.box_augment)),
+    keypoints = None
+    if k.get("keypoints"):  # a keypoint file other than the dataset's (e.g. another designator)
+        from kpd6d.keypoints import load_keypoints
+
+        keypoints = load_keypoints(k.keypoints)
+    train = KPDCropDataset(root, split=cfg.data.train_split, box_augment=build_box_augment(to_plain(k.box_augment)),
+                           keypoints=keypoints,
                            return_heatmaps=not (k.augment and (k.augment.get("rotation_deg") or k.augment.get("translate")
                                                                 or k.augment.get("scale"))),
                            **common)
@@ -106,11 +92,11 @@ def train_kpd(cfg) -> Path:
 
     module = KPDModule.from_models(
         [train_ds.models[o] for o in train_ds.obj_ids], train_ds.keypoints_3d,
-        backbone=_plain(cfg.stage.backbone), head=_plain(k.head), grouping=k.grouping,
+        backbone=to_plain(cfg.stage.backbone), head=to_plain(k.head), grouping=k.grouping,
         input_size=int(k.input_size), out_stride=int(k.out_stride), sigma=float(k.sigma),
-        crop_scale=float(k.crop_scale), decoder=_plain(cfg.stage.decoder), loss=_plain(k.loss),
-        optimizer=_plain(k.optimizer), scheduler=_plain(k.scheduler), augment=_plain(k.augment),
-        top_l=k.top_l, pnp=_plain(k.pnp),
+        crop_scale=float(k.crop_scale), decoder=to_plain(cfg.stage.decoder), loss=to_plain(k.loss),
+        optimizer=to_plain(k.optimizer), scheduler=to_plain(k.scheduler), augment=to_plain(k.augment),
+        top_l=k.top_l, pnp=to_plain(k.pnp),
     )
     nw = int(k.num_workers)
     loader_kw = dict(batch_size=int(k.batch_size), num_workers=nw, persistent_workers=nw > 0, pin_memory=False)
@@ -128,7 +114,7 @@ def train_kpd(cfg) -> Path:
     ]
     # a new version_N per (re)start, so resuming keeps the earlier logs
     loggers = [TensorBoardLogger(str(run_dir), name="tb"), CSVLogger(str(run_dir), name="csv")]
-    tkw = {key: v for key, v in _plain(k.trainer).items() if v is not None}
+    tkw = {key: v for key, v in to_plain(k.trainer).items() if v is not None}
     trainer = pl.Trainer(default_root_dir=str(run_dir), logger=loggers, callbacks=callbacks, **tkw)
     last = ckpt_dir / "last.ckpt"
     resume = str(last) if (k.get("resume", True) and last.is_file()) else None

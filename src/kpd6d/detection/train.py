@@ -14,7 +14,9 @@ import time
 from pathlib import Path
 from typing import Any
 
-__all__ = ["prepare_data", "run_dir_of", "train_detector"]
+from kpd6d.config import run_dir_of, to_plain
+
+__all__ = ["prepare_data", "train_detector"]
 
 
 def _get(cfg: Any, key: str, default: Any = None) -> Any:
@@ -24,32 +26,6 @@ def _get(cfg: Any, key: str, default: Any = None) -> Any:
             return default
         cur = cur.get(part) if hasattr(cur, "get") else getattr(cur, part, None)
     return default if cur is None else cur
-
-
-def _plain(x: Any) -> Any:
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(x, (DictConfig, ListConfig)):
-            return OmegaConf.to_container(x, resolve=True)
-    except ImportError:  # pragma: no cover
-        pass
-    return x
-
-
-def run_dir_of(cfg: Any) -> Path:
-    """Hydra's output folder when running under Hydra, else ``cfg.run_dir`` or the current folder."""
-    explicit = _get(cfg, "run_dir")
-    if explicit:
-        return Path(explicit)
-    try:
-        from hydra.core.hydra_config import HydraConfig
-
-        if HydraConfig.initialized():
-            return Path(HydraConfig.get().runtime.output_dir)
-    except ImportError:  # pragma: no cover
-        pass
-    return Path.cwd()
 
 
 def prepare_data(cfg: Any, run_dir: Path) -> Path:
@@ -62,7 +38,7 @@ def prepare_data(cfg: Any, run_dir: Path) -> Path:
         return root
     from kpd6d.synth import generate_dataset
 
-    g = _plain(_get(cfg, "stage.generate", {})) or {}
+    g = to_plain(_get(cfg, "stage.generate", {})) or {}
     out = run_dir / "data"
     seed = int(g.get("seed", 1))
     for split, n, s in ((_get(cfg, "data.train_split", "train"), g.get("num_train", 400), seed),
@@ -84,8 +60,8 @@ def train_detector(cfg: Any) -> Path:
     from kpd6d.detection.detectors import save_detector
     from kpd6d.detection.module import DetectorModule
 
-    st = _plain(_get(cfg, "stage")) or {}
-    det_cfg = dict(_plain(_get(cfg, "detector")) or {})
+    st = to_plain(_get(cfg, "stage")) or {}
+    det_cfg = dict(to_plain(_get(cfg, "detector")) or {})
     if not det_cfg.get("name"):
         raise KeyError("train_detector: config has no detector.name (use detector=centernet|fcos|faster_rcnn)")
     recipes = st.get("recipes") or {}

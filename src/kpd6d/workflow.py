@@ -67,13 +67,14 @@ def designate(models: list, designator_cfg, out_file: Path, per_object: dict | N
     return kps
 
 
-def generate(cfg, root: Path, designator_cfg) -> None:
+def generate(cfg, root: Path) -> None:
     """Train / val / test splits (different seeds) written resumably into ``root``."""
     from kpd6d.synth import generate_dataset
 
     d = cfg.data
     options = dict(to_plain(d.options) or {})
-    options.setdefault("designator", to_plain(designator_cfg))
+    # keypoints live in the run (keypoints.json) so that runs with other designators share one dataset
+    options.setdefault("designator", None)
     for i, (split, n) in enumerate((("train", d.num_train), ("val", d.num_val), (cfg.evaluate.split, d.num_test))):
         if not n:
             continue
@@ -135,7 +136,7 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     designate(models, cfg.designator, keypoints_file, cfg.get("designator_per_object"))
 
     root = Path(cfg.data.root) if cfg.data.root else run_dir / "data"
-    generate(cfg, root, cfg.designator)
+    generate(cfg, root)
     timings = {"prepare_s": time.time() - t_start}
 
     t0 = time.time()

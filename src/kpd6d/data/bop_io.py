@@ -149,16 +149,17 @@ def read_image(path: str | os.PathLike, *, flags: int | None = None) -> np.ndarr
 # ---------------------------------------------------------------------------------------------
 # readers
 # ---------------------------------------------------------------------------------------------
-def read_json(path: str | os.PathLike, *, what: str = "JSON file") -> Any:
+def read_json(path: str | os.PathLike, *, what: str = "JSON file", error: type[Exception] = BopFormatError) -> Any:
+    """Parse a JSON file; a missing, non-text or malformed file raises ``error`` naming the file."""
     path = Path(path)
     if not path.is_file():
-        raise BopFormatError(f"{path}: {what} does not exist")
+        raise error(f"{path}: {what} does not exist")
     try:
         return json.loads(path.read_text())
     except json.JSONDecodeError as exc:
-        raise BopFormatError(f"{path}: invalid JSON ({exc})") from exc
+        raise error(f"{path}: invalid JSON ({exc})") from exc
     except UnicodeDecodeError as exc:
-        raise BopFormatError(f"{path}: not a text file ({exc})") from exc
+        raise error(f"{path}: not a text file ({exc})") from exc
 
 
 def _im_dict(path: Path, raw: Any) -> dict[int, Any]:

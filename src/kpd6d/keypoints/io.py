@@ -109,13 +109,10 @@ def save_keypoints(path: str | os.PathLike, keypoints: dict[int, Any], *, design
 
 def read_keypoint_file(path: str | os.PathLike) -> KeypointFile:
     """Read a keypoint file with its provenance; errors name the file and the offending field."""
+    from kpd6d.data import read_json
+
     path = Path(path)
-    if not path.is_file():
-        raise KeypointFileError(f"{path}: keypoint file does not exist")
-    try:
-        doc = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise KeypointFileError(f"{path}: invalid JSON ({exc})") from exc
+    doc = read_json(path, what="keypoint file", error=KeypointFileError)
     if not isinstance(doc, dict) or "objects" not in doc:
         raise KeypointFileError(f"{path}: missing field 'objects' (not a kpd6d keypoint file)")
     if doc.get("format", FORMAT) != FORMAT:

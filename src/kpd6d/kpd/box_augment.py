@@ -120,25 +120,21 @@ def save_box_error_stats(path: str | os.PathLike, stats: Mapping) -> Path:
     """Write ``stats`` as JSON atomically (temp file + os.replace)."""
     _validate({**stats}, str(path))
     p = Path(path)
-    p.parent.mkdir(parents=True, exist_ok=True)
-    tmp = p.with_name(p.name + ".tmp")
     plain = {k: (np.asarray(v).tolist() if isinstance(v, np.ndarray) else v) for k, v in stats.items()}
     if "per_object" in plain:
         plain["per_object"] = {str(k): np.asarray(v).tolist() for k, v in plain["per_object"].items()}
-    tmp.write_text(json.dumps(plain))
-    os.replace(tmp, p)
+    from kpd6d.data import atomic_write_text
+
+    atomic_write_text(p, json.dumps(plain))
     return p
 
 
 def load_box_error_stats(path: str | os.PathLike) -> dict:
     """Read and validate a stats file; ``offsets`` come back as a numpy array (N, 4)."""
+    from kpd6d.data import read_json
+
     p = Path(path)
-    if not p.is_file():
-        raise BoxErrorStatsError(f"box-error stats file {str(p)!r} does not exist (written by the detector stage)")
-    try:
-        data = json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise BoxErrorStatsError(f"box-error stats file {str(p)!r} is not valid JSON: {exc}") from exc
+    data = read_json(p, what="box-error stats file (written by the detector stage)", error=BoxErrorStatsError)
     return _validate(data, str(p))
 
 

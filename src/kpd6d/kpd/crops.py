@@ -14,7 +14,6 @@ has a depth image, else ``mask`` when it has masks, else ``crop``.
 
 from __future__ import annotations
 
-import json
 import os
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
@@ -58,13 +57,10 @@ def _iou_xywh(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def load_detection_boxes(path: str | os.PathLike) -> dict[tuple[int, int], list[tuple[int, np.ndarray, float]]]:
     """BOP detection JSON (list of ``{scene_id, image_id, category_id, bbox (xywh), score}``) →
     ``{(scene_id, im_id): [(obj_id, box, score), ...]}``."""
+    from kpd6d.data import read_json
+
     p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"detections file {str(p)!r} does not exist")
-    try:
-        entries = json.loads(p.read_text())
-    except json.JSONDecodeError as exc:
-        raise ValueError(f"detections file {str(p)!r} is not valid JSON: {exc}") from exc
+    entries = read_json(p, what="detections file", error=ValueError)
     if not isinstance(entries, list):
         raise ValueError(f"detections file {str(p)!r} must hold a JSON list of detections")
     out: dict[tuple[int, int], list] = {}

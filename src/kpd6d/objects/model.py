@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import json
 import os
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -182,13 +181,10 @@ def _diameter(v: np.ndarray) -> float:
 
 def load_models_info(path: str | os.PathLike) -> dict[int, dict]:
     """Read BOP ``models_info.json`` into ``{obj_id: entry}``; errors name the file and field."""
+    from kpd6d.data import read_json
+
     path = Path(path)
-    if not path.exists():
-        raise ModelError(f"{path}: models_info.json does not exist")
-    try:
-        raw = json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise ModelError(f"{path}: invalid JSON ({exc})") from exc
+    raw = read_json(path, what="models_info.json", error=ModelError)
     if not isinstance(raw, dict):
         raise ModelError(f"{path}: expected an object mapping object ids to entries, got {type(raw).__name__}")
     out: dict[int, dict] = {}

@@ -46,3 +46,13 @@ def test_collect_errors_name_the_problem(tmp_path, capsys):
     (tmp_path / "0" / "metrics.json").write_text("{oops")
     assert main([str(tmp_path)]) == 2
     assert "0/metrics.json is not valid JSON" in capsys.readouterr().err
+
+
+def test_collect_skips_a_jobs_own_subfolders(tmp_path):
+    # kpd6d-run writes metrics.json in the job folder and in its eval/ and kpd/ sub-folders
+    for i, name in enumerate(["sift", "bbox_corners"]):
+        _run(tmp_path, i, [f"designator={name}"], {"add_0.1d": 0.1 * (i + 1)}, {"1": {"add_0.1d": 0.1}})
+        (tmp_path / str(i) / "eval").mkdir()
+        (tmp_path / str(i) / "eval" / "metrics.json").write_text(json.dumps({"mean": {"add_0.1d": 0.9}}))
+    res = collect(tmp_path)
+    assert [r["run"] for r in res["rows"]] == ["0", "1"] and res["varied"] == ["designator"]

@@ -46,9 +46,12 @@ def _read_overrides(run: Path) -> dict[str, str]:
 
 
 def find_runs(root: Path) -> list[Path]:
-    """Every folder under ``root`` that holds a metrics.json, in a stable (natural) order."""
-    runs = sorted({p.parent for p in Path(root).rglob("metrics.json")}, key=_natural_key)
-    return runs
+    """The runs under ``root``, in a stable (natural) order: Hydra job folders (with ``.hydra/``) that
+    hold a metrics.json; without any, every folder that holds one. A job's own sub-folders (e.g.
+    ``kpd6d-run``'s ``eval/`` and ``kpd/``) are not separate runs."""
+    found = {p.parent for p in Path(root).rglob("metrics.json")}
+    jobs = {d for d in found if (d / ".hydra").is_dir()}
+    return sorted(jobs or found, key=_natural_key)
 
 
 def _natural_key(p: Path):

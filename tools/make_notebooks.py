@@ -102,7 +102,7 @@ NB02 = [
              "    print(p['obj_id'], 'ok' if p['ok'] else p['reason'], 't =', np.round(p['t'], 1), "
              "' (GT', np.round(frame.instances[0].t, 1), ')')"),
     ("md", "Ground truth (green) and prediction (blue):"),
-    ("code", "from kpd6d.evaluation.report import draw_overlay\n"
+    ("code", "from kpd6d.visualize import draw_overlay\n"
              "corners = {o: m.bbox_corners for o, m in models.items()}\n"
              "img = draw_overlay(frame.load_rgb(), frame.K, corners, [(i.obj_id, i.R, i.t) for i in frame.instances],\n"
              "                   [(p['obj_id'], p['R'], p['t']) for p in poses if p['ok']])\n"

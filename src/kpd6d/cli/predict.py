@@ -70,7 +70,7 @@ def _read_rgb(path: Path) -> np.ndarray:
 
 
 def _draw(image: np.ndarray, K, preds: list[dict], corners: dict[int, np.ndarray]) -> np.ndarray:
-    from kpd6d.evaluation.report import PRED_COLOR, draw_overlay
+    from kpd6d.visualize import PRED_COLOR, draw_overlay
 
     out = draw_overlay(image, K, corners, [], [(p["obj_id"], p["R"], p["t"]) for p in preds if p["ok"]])
     for p in preds:

@@ -148,7 +148,8 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     from tqdm import tqdm
 
     from kpd6d.evaluation.bop19 import score_bop19_file
-    from kpd6d.evaluation.report import draw_overlay, plot_curves, write_report_md
+    from kpd6d.evaluation.report import plot_curves, write_report_md
+    from kpd6d.visualize import draw_overlay
 
     out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)

@@ -8,48 +8,11 @@ import io
 import os
 from pathlib import Path
 
-import cv2
 import numpy as np
 
 from kpd6d.data import atomic_write_bytes, atomic_write_text
-from kpd6d.geometry import project_points
 
-__all__ = ["GT_COLOR", "PRED_COLOR", "draw_box_3d", "draw_overlay", "plot_curves", "write_report_md"]
-
-GT_COLOR = (0, 200, 0)  # RGB green
-PRED_COLOR = (30, 90, 255)  # RGB blue
-
-# the 12 edges of a box whose 8 corners are ordered x fastest (ObjectModel.bbox_corners)
-_EDGES = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
-
-
-
-def draw_box_3d(image: np.ndarray, corners_3d: np.ndarray, K, R, t, color, thickness: int = 2) -> np.ndarray:
-    """Draw the projected 3D box (8 corners, x fastest) of a model at pose (R, t) in place; returns the image."""
-    R, t = np.asarray(R, float), np.asarray(t, float)
-    if not (np.isfinite(R).all() and np.isfinite(t).all()):
-        return image
-    uv, z = project_points(np.asarray(corners_3d, float), np.asarray(K, float), R, t, return_depth=True)
-    if (z <= 0).any():
-        return image
-    pts = np.round(uv).astype(np.int64)
-    for a, b in _EDGES:
-        cv2.line(image, tuple(int(v) for v in pts[a]), tuple(int(v) for v in pts[b]), color, thickness, cv2.LINE_AA)
-    return image
-
-
-def draw_overlay(image: np.ndarray, K, corners: dict[int, np.ndarray], gt: list[tuple[int, np.ndarray, np.ndarray]],
-                 pred: list[tuple[int, np.ndarray, np.ndarray]]) -> np.ndarray:
-    """A copy of ``image`` with GT boxes (green) and predicted boxes (blue); ``gt``/``pred`` are (obj_id, R, t)."""
-    out = np.ascontiguousarray(image.copy())
-    for oid, R, t in gt:
-        if oid in corners:
-            draw_box_3d(out, corners[oid], K, R, t, GT_COLOR, thickness=3)
-    for oid, R, t in pred:
-        if oid in corners:
-            draw_box_3d(out, corners[oid], K, R, t, PRED_COLOR, thickness=1)
-    return out
-
+__all__ = ["plot_curves", "save_figure", "write_report_md"]
 
 # ---------------------------------------------------------------------------------------------
 # plots

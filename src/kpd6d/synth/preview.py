@@ -9,39 +9,9 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd6d.geometry import project_points
+from kpd6d.visualize import draw_pose
 
-__all__ = ["draw_frame", "draw_pose"]
-
-# the 12 edges of a box whose 8 corners are ordered x fastest (ObjectModel.bbox_corners)
-_BOX_EDGES = [(0, 1), (2, 3), (4, 5), (6, 7), (0, 2), (1, 3), (4, 6), (5, 7), (0, 4), (1, 5), (2, 6), (3, 7)]
-
-
-def _pt(p) -> tuple[int, int]:
-    return round(float(p[0]) * 16), round(float(p[1]) * 16)  # 4 fractional bits (cv2 shift=4)
-
-
-def draw_pose(img: np.ndarray, K, R, t, model, keypoints: np.ndarray | None = None,
-              color=(0, 255, 0), thickness: int = 1) -> np.ndarray:
-    """Draw the model's projected 3D bounding box, its axes (x red, y green, z blue, half the
-    box size long) and ``keypoints`` (k, 3) (model frame) onto RGB ``img`` in place."""
-    import cv2
-
-    corners = project_points(np.asarray(model.bbox_corners, dtype=np.float64), K, R, t)
-    for a, b in _BOX_EDGES:
-        cv2.line(img, _pt(corners[a]), _pt(corners[b]), color, thickness, cv2.LINE_AA, shift=4)
-    c = model.bbox_min + model.bbox_size / 2
-    L = float(model.bbox_size.max()) * 0.5
-    axes = project_points(np.vstack([c, c + L * np.eye(3)]), K, R, t)
-    for k, col in enumerate([(255, 0, 0), (0, 255, 0), (0, 0, 255)]):
-        cv2.line(img, _pt(axes[0]), _pt(axes[k + 1]), col, thickness + 1, cv2.LINE_AA, shift=4)
-    if keypoints is not None and len(keypoints):
-        uv = project_points(np.asarray(keypoints, dtype=np.float64), K, R, t)
-        for p in uv:
-            cv2.circle(img, _pt(p), 3 * 16, (255, 255, 0), -1, cv2.LINE_AA, shift=4)
-            cv2.circle(img, _pt(p), 3 * 16, (0, 0, 0), 1, cv2.LINE_AA, shift=4)
-    return img
-
+__all__ = ["draw_frame"]
 
 def draw_frame(frame, models_by_id: dict, keypoints: dict | None = None, draw_boxes: bool = True) -> np.ndarray:
     """The frame's image with every instance's pose drawn (and its 2D ``bbox_obj`` in white)."""

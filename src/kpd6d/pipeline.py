@@ -23,6 +23,8 @@ from typing import Any
 import numpy as np
 import torch
 
+from kpd6d.kpd.select import solve_top_l, top_l_mask
+
 __all__ = ["PipelineInputError", "PosePipeline", "default_device", "images_to_tensor"]
 
 
@@ -56,14 +58,6 @@ def _check_K(K, n: int) -> np.ndarray:
     if K.shape != (n, 3, 3) or not np.isfinite(K).all():
         raise PipelineInputError(f"K must be (3, 3) or ({n}, 3, 3) finite intrinsics, got shape {K.shape}")
     return np.ascontiguousarray(K)
-
-
-def _top_l_mask(confidences: torch.Tensor, top_l: int | None) -> torch.Tensor:
-    """Boolean mask (N, k) of the ``top_l`` most confident keypoints (all when None)."""
-    from kpd6d.kpd.select import top_l as select_top_l
-
-    mask = torch.zeros_like(confidences, dtype=torch.bool)
-    return mask.scatter_(-1, select_top_l(confidences, top_l), True)
 
 
 class PosePipeline:
@@ -151,7 +145,7 @@ class PosePipeline:
         kp2d, conf = self.kpd.predict_keypoints(x, boxes_t, idx_t, ids_t)
         kp2d = torch.as_tensor(kp2d).float()
         conf = torch.as_tensor(conf).float()
-        used = _top_l_mask(conf, self.top_l)
+        used = top_l_mask(conf, self.top_l)
         if self.device.type == "cuda":
             torch.cuda.synchronize()
         t2 = time.perf_counter()
@@ -163,9 +157,7 @@ class PosePipeline:
         pts3d = np.stack([np.asarray(self.kpd.keypoints_3d[o], dtype=np.float64).reshape(-1, 3) for o in obj_ids])
         if pts3d.shape[1] != k:
             raise PipelineInputError(f"KPD returned {k} keypoints but keypoints_3d has {pts3d.shape[1]}")
-        # PnP uses the points with confidence > 0: weight the top-l by their confidence, zero the rest
-        weights = np.where(used_np, np.maximum(conf_np, 1e-6), 0.0)
-        est = self.pnp.solve_batch(pts3d, kp2d_np, Ks[np.asarray(img_idx)], weights)
+        est = solve_top_l(self.pnp, pts3d, kp2d_np, Ks[np.asarray(img_idx)], conf_np, self.top_l)
         t3 = time.perf_counter()
 
         R, t, ok = np.asarray(est.R), np.asarray(est.t), np.asarray(est.ok)

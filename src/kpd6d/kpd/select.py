@@ -8,13 +8,10 @@ the confidences to the solver (weighted solvers use them).
 
 from __future__ import annotations
 
-from collections.abc import Sequence
-from typing import Any
-
 import numpy as np
 import torch
 
-__all__ = ["solve_top_l", "top_l"]
+__all__ = ["solve_top_l", "top_l", "top_l_mask"]
 
 
 def top_l(confidences, l: int | None = None):  # noqa: E741 - the paper's name
@@ -30,13 +27,25 @@ def top_l(confidences, l: int | None = None):  # noqa: E741 - the paper's name
     return order[..., :n]
 
 
+def top_l_mask(confidences, l: int | None = None):  # noqa: E741
+    """Boolean mask (..., k) of the l most confident keypoints (numpy or torch, like the input)."""
+    idx = top_l(confidences, l)
+    if isinstance(confidences, torch.Tensor):
+        return torch.zeros_like(confidences, dtype=torch.bool).scatter_(-1, idx, True)
+    mask = np.zeros(np.shape(confidences), dtype=bool)
+    np.put_along_axis(mask, idx, True, axis=-1)
+    return mask
+
+
 def solve_top_l(solver, keypoints_3d, keypoints_2d, K, confidences, l: int | None = None,  # noqa: E741
-                weighted: bool = True) -> list[Any]:
-    """PnP per instance on its top-l keypoints.
+                weighted: bool = True):
+    """One batched PnP over N instances, each on its top-l keypoints.
 
     ``keypoints_3d`` (N, k, 3) or (k, 3) mm, ``keypoints_2d`` (N, k, 2) image px, ``K`` (N, 3, 3) or
     (3, 3), ``confidences`` (N, k); ``solver`` a PNP_SOLVERS instance (or a config dict
-    ``{"name": ..., ...}``). Returns a list of N ``PoseEstimate``.
+    ``{"name": ..., ...}``). The unselected keypoints get confidence 0, which every solver reads as
+    "not used"; the selected ones pass their confidence (``weighted``) or 1 to the solver. Returns the
+    solver's ``BatchPoseEstimate`` (indexable: ``result[i]`` is instance i's ``PoseEstimate``).
     """
     from kpd6d.registry import PNP_SOLVERS, build_from_cfg
 
@@ -53,10 +62,6 @@ def solve_top_l(solver, keypoints_3d, keypoints_2d, K, confidences, l: int | Non
         p3 = np.broadcast_to(p3, (N, *p3.shape))
     if Ks.ndim == 2:
         Ks = np.broadcast_to(Ks, (N, 3, 3))
-    idx = top_l(c, l)
-    out = []
-    for i in range(N):
-        sel: Sequence[int] = idx[i]
-        conf = c[i, sel] if weighted else None
-        out.append(solver(p3[i, sel], p2[i, sel], Ks[i], confidences=conf))
-    return out
+    used = top_l_mask(c, l)
+    weights = np.where(used, np.maximum(c, 1e-6) if weighted else 1.0, 0.0)
+    return solver.solve_batch(np.ascontiguousarray(p3), p2, np.ascontiguousarray(Ks), weights)

@@ -65,7 +65,7 @@ NB02 = [
            "briefly, run the pose pipeline with ground-truth boxes (the `oracle` detector), draw poses and "
            "plot accuracy curves. A model trained this briefly is inaccurate; set `KPD6D_KPD_CKPT` to a trained "
            "checkpoint (e.g. from `make demo`: `outputs/demo/<date>/kpd/checkpoints/best.ckpt`) to use it instead."),
-    ("code", "import os, tempfile\nfrom pathlib import Path\nimport numpy as np\nimport matplotlib.pyplot as plt\n\n"
+    ("code", "import os\nimport tempfile\nfrom pathlib import Path\nimport numpy as np\nimport matplotlib.pyplot as plt\n\n"
              "from kpd6d.synth import generate_dataset\nfrom kpd6d.data import BopDataset\n\n"
              "work = Path(tempfile.mkdtemp())\nroot = work / 'tiny'\n"
              "common = dict(obj_ids=[1], workers=1, progress=False, width=320, height=240,\n"
@@ -114,7 +114,9 @@ NB02 = [
              "fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))\n"
              "for ax, key, label in [(axes[0], 'proj2d', 'pixel threshold'), (axes[1], 'add_s', 'ADD(-S) threshold (× diameter)')]:\n"
              "    ax.plot(metrics['curves'][key + '_thresholds'], np.array(metrics['mean']['curves'][key]) * 100)\n"
-             "    ax.set_xlabel(label); ax.set_ylabel('accuracy (%)'); ax.grid(alpha=0.3)"),
+             "    ax.set_xlabel(label)\n"
+             "    ax.set_ylabel('accuracy (%)')\n"
+             "    ax.grid(alpha=0.3)"),
 ]
 
 

@@ -297,3 +297,23 @@ def test_postprocess_threshold_cap_one_per_object_and_id_mapping():
     a, _ = det.postprocess(boxes, labels, scores)
     assert a.obj_ids.tolist() == [11, 3, 7]
     torch.testing.assert_close(a.boxes, boxes[0, [0, 2, 3]])
+
+
+def test_centernet_loads_a_local_backbone_file_partially(tmp_path):
+    """A local weights file loads into the backbone; entries of other shapes are skipped, and a file
+    matching nothing is a clear error."""
+    import torch
+
+    from kpd6d.detection.detectors import build_detector
+
+    src = build_detector("centernet", obj_ids=[1], backbone="resnet10t")
+    state = {k: torch.full_like(v, 0.5) if v.is_floating_point() else v for k, v in src.backbone.state_dict().items()}
+    state["not.a.parameter"] = torch.zeros(3)
+    f = tmp_path / "bb.pth"
+    torch.save(state, f)
+    det = build_detector("centernet", obj_ids=[1], backbone="resnet10t", backbone_weights_path=str(f))
+    loaded = det.backbone.state_dict()
+    assert all(torch.equal(loaded[k], state[k]) for k in loaded)
+    torch.save({"x": torch.zeros(2)}, tmp_path / "other.pth")
+    with pytest.raises(Exception, match="matches none"):
+        build_detector("centernet", obj_ids=[1], backbone="resnet10t", backbone_weights_path=str(tmp_path / "other.pth"))

@@ -19,7 +19,7 @@ import torch
 import torch.nn.functional as F
 from torch import nn
 
-from kpd6d.detection.detections import DetectionInputError, Detector
+from kpd6d.detection.detections import DetectionInputError, Detector, load_partial_weights
 
 __all__ = ["CenterNet", "centernet_targets", "decode_centernet", "focal_loss", "gaussian_radius"]
 
@@ -143,7 +143,7 @@ class CenterNet(Detector):
         except RuntimeError as exc:  # unknown model names
             raise DetectionInputError(f"centernet: cannot build timm backbone {backbone!r}: {exc}") from exc
         if backbone_weights_path:
-            _load_backbone_weights(self.backbone, backbone_weights_path)
+            load_partial_weights(self.backbone, backbone_weights_path, "backbone_weights_path")
         info = self.backbone.feature_info
         reductions, channels = info.reduction(), info.channels()
         keep = [i for i, r in enumerate(reductions) if r >= 4]
@@ -204,16 +204,3 @@ class CenterNet(Detector):
         return {"loss": total, "loss_heatmap": l_heat, "loss_wh": l_wh, "loss_offset": l_off}
 
 
-def _load_backbone_weights(module: nn.Module, path: str) -> None:
-    from pathlib import Path
-
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"backbone_weights_path {str(p)!r} does not exist")
-    state = torch.load(p, map_location="cpu", weights_only=True)
-    if isinstance(state, dict) and "state_dict" in state:
-        state = state["state_dict"]
-    result = module.load_state_dict(state, strict=False)
-    own = set(module.state_dict())
-    if not own - set(result.missing_keys):
-        raise DetectionInputError(f"backbone weights {str(p)!r} match none of the backbone's parameters")

@@ -21,6 +21,7 @@ __all__ = [
     "Detector",
     "check_images",
     "keep_best_per_class",
+    "load_partial_weights",
     "xywh_to_xyxy",
     "xyxy_to_xywh",
 ]
@@ -220,3 +221,20 @@ class Detector(nn.Module):
     def spec(self) -> dict:
         """Constructor parameters to rebuild this detector (see :func:`kpd6d.detection.load_detector`)."""
         return dict(getattr(self, "_spec", {}))
+
+
+def load_partial_weights(module: nn.Module, path: str, what: str) -> None:
+    """Load a local state dict, skipping entries whose shapes differ (e.g. a head for other classes)."""
+    from pathlib import Path
+
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"{what} {str(p)!r} does not exist")
+    state = torch.load(p, map_location="cpu", weights_only=True)
+    if isinstance(state, dict) and "state_dict" in state:
+        state = state["state_dict"]
+    own = module.state_dict()
+    usable = {k: v for k, v in state.items() if k in own and own[k].shape == v.shape}
+    if not usable:
+        raise DetectionInputError(f"{what} {str(p)!r} matches none of the model's parameters")
+    module.load_state_dict(usable, strict=False)

@@ -14,12 +14,17 @@ from __future__ import annotations
 
 from collections import OrderedDict
 from collections.abc import Sequence
-from pathlib import Path
 
 import torch
 from torch import nn
 
-from kpd6d.detection.detections import DetectionInputError, Detector, xywh_to_xyxy, xyxy_to_xywh
+from kpd6d.detection.detections import (
+    DetectionInputError,
+    Detector,
+    load_partial_weights,
+    xywh_to_xyxy,
+    xyxy_to_xywh,
+)
 
 __all__ = ["TimmFPN", "TorchvisionDetector", "build_fpn_backbone"]
 
@@ -42,7 +47,7 @@ class TimmFPN(nn.Module):
             raise DetectionInputError(f"cannot build timm backbone {name!r} with out_indices "
                                       f"{tuple(out_indices)}: {exc}") from exc
         if weights_path:
-            _load_partial(self.body, weights_path, "backbone_weights_path")
+            load_partial_weights(self.body, weights_path, "backbone_weights_path")
         self.fpn = FeaturePyramidNetwork(self.body.feature_info.channels(), out_channels, extra_blocks=extra_blocks)
         self.out_channels = out_channels
 
@@ -70,7 +75,7 @@ def build_fpn_backbone(backbone: str, levels: str, weights_path: str | None = No
     fpn = resnet_fpn_backbone(backbone_name=backbone, weights=None, trainable_layers=5, returned_layers=returned,
                               extra_blocks=extra, norm_layer=nn.BatchNorm2d)
     if weights_path:
-        _load_partial(fpn.body, weights_path, "backbone_weights_path")
+        load_partial_weights(fpn.body, weights_path, "backbone_weights_path")
     return fpn
 
 
@@ -102,7 +107,7 @@ class TorchvisionDetector(Detector):
             raise DetectionInputError(f"unknown torchvision detector kind {kind!r}; known: fcos, faster_rcnn")
         self.kind = kind
         if weights_path:
-            _load_partial(self.model, weights_path, "weights_path")
+            load_partial_weights(self.model, weights_path, "weights_path")
 
     def raw_predict(self, images: torch.Tensor):
         outs = self.model(list(images))
@@ -135,16 +140,3 @@ class TorchvisionDetector(Detector):
         return losses
 
 
-def _load_partial(module: nn.Module, path: str, what: str) -> None:
-    """Load a local state dict, skipping entries whose shapes differ (e.g. a head for other classes)."""
-    p = Path(path)
-    if not p.is_file():
-        raise FileNotFoundError(f"{what} {str(p)!r} does not exist")
-    state = torch.load(p, map_location="cpu", weights_only=True)
-    if isinstance(state, dict) and "state_dict" in state:
-        state = state["state_dict"]
-    own = module.state_dict()
-    usable = {k: v for k, v in state.items() if k in own and own[k].shape == v.shape}
-    if not usable:
-        raise DetectionInputError(f"{what} {str(p)!r} matches none of the model's parameters")
-    module.load_state_dict(usable, strict=False)

@@ -116,30 +116,16 @@ class DetectorModule(pl.LightningModule):
         if c["schedule"] == "step":  # the paper's: lr / 10 every step_epochs epochs (no warm-up)
             sched = torch.optim.lr_scheduler.StepLR(opt, int(c["step_epochs"]), c["gamma"])
             return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
-        if c["schedule"] == "cosine":
-            import math
+        if c["schedule"] in ("cosine", "cosine_time"):
+            from kpd6d.schedules import WarmupCosine
 
-            est = self.trainer.estimated_stepping_batches
-            total = max(int(est), 1) if est != float("inf") else 100_000
-
-            def factor(it: int) -> float:
-                w = min(1.0, (it + 1) / warm) if warm else 1.0
-                return w * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * min(it, total) / total)))
-        elif c["schedule"] == "cosine_time":  # cosine over a wall-clock budget (CPU runs capped by max_time)
-            import math
-            import time
-
-            budget = float(c["minutes"]) * 60.0
-            if budget <= 0:
-                raise ValueError("schedule cosine_time needs optimizer.minutes > 0 (the training time budget)")
-            start: list[float] = []
-
-            def factor(it: int) -> float:
-                if not start:
-                    start.append(time.monotonic())
-                frac = min((time.monotonic() - start[0]) / budget, 1.0)
-                w = min(1.0, (it + 1) / warm) if warm else 1.0
-                return w * (0.02 + 0.98 * 0.5 * (1 + math.cos(math.pi * frac)))
+            if c["schedule"] == "cosine":
+                est = self.trainer.estimated_stepping_batches
+                factor = WarmupCosine(warm, 0.02, total_steps=max(int(est), 1) if est != float("inf") else 100_000)
+            else:  # cosine over a wall-clock budget (CPU runs capped by max_time)
+                if float(c["minutes"]) <= 0:
+                    raise ValueError("schedule cosine_time needs optimizer.minutes > 0 (the training time budget)")
+                factor = WarmupCosine(warm, 0.02, budget_s=float(c["minutes"]) * 60.0)
         elif c["schedule"] == "constant":
             def factor(it: int) -> float:
                 return min(1.0, (it + 1) / warm) if warm else 1.0

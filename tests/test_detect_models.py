@@ -127,7 +127,8 @@ def test_centernet_decoding_of_a_hand_made_heatmap():
 def test_centernet_targets_round_trip_through_decoding():
     boxes = torch.tensor([[10.0, 12.0, 20.0, 16.0], [40.5, 3.0, 9.0, 30.0]])
     targets = [{"boxes": boxes, "labels": torch.tensor([1, 0])}, {"boxes": torch.zeros(0, 4), "labels": torch.zeros(0)}]
-    heat, batch, index, wh, off = centernet_targets(targets, num_classes=2, out_hw=(16, 20), stride=4)
+    heat, batch, index, wh, off, weight = centernet_targets(targets, num_classes=2, out_hw=(16, 20), stride=4)
+    assert weight.tolist() == [1.0, 1.0]
     assert heat.shape == (2, 2, 16, 20) and float(heat[1].max()) == 0.0
     # exactly one 1.0 per box, at floor(centre / 4)
     assert int((heat == 1).sum()) == 2
@@ -149,6 +150,38 @@ def test_centernet_targets_round_trip_through_decoding():
     got = {int(lab): b for lab, b in zip(dlabels[0], dboxes[0])}
     torch.testing.assert_close(got[1], boxes[0])
     torch.testing.assert_close(got[0], boxes[1])
+
+
+def test_centernet_dense_targets_point_every_splat_cell_at_its_box():
+    boxes = torch.tensor([[10.0, 12.0, 40.0, 36.0], [44.5, 3.0, 30.0, 50.0]])
+    targets = [{"boxes": boxes, "labels": torch.tensor([1, 0])}]
+    sparse = centernet_targets(targets, num_classes=2, out_hw=(16, 20), stride=4)
+    dense = centernet_targets(targets, num_classes=2, out_hw=(16, 20), stride=4, dense=True)
+    torch.testing.assert_close(dense.heatmap, sparse.heatmap)
+    h, w = 16, 20
+    centres = (boxes[:, :2] + boxes[:, 2:] / 2) / 4
+    for j in range(2):
+        # samples of box j: found by their size target (the two boxes differ)
+        sel = (dense.wh == boxes[j, 2:] / 4).all(1)
+        n = int(sel.sum())
+        assert n > 4  # more than the centre cell
+        torch.testing.assert_close(dense.weight[sel].sum(), torch.tensor(1.0))
+        cells = torch.stack([dense.index[sel] % w, dense.index[sel] // w], 1).float()
+        # cell + offset is the box centre for every sample
+        torch.testing.assert_close(cells + dense.offset[sel], centres[j].expand(n, 2))
+        # exactly the cells within the central 0.54 of the box (independent count)
+        half = 0.54 * boxes[j, 2:] / 4 / 2
+        c0 = torch.floor(centres[j])
+        xs = torch.arange(w).float()
+        ys = torch.arange(h).float()
+        inside = ((ys[:, None] - c0[1]).abs() <= half[1]) & ((xs[None, :] - c0[0]).abs() <= half[0])
+        assert n == int(inside.sum())
+        # the centre cell is among them and weighs the most
+        ci = int(math.floor(centres[j, 1]) * w + math.floor(centres[j, 0]))
+        k = int(torch.nonzero(dense.index[sel] == ci)[0, 0])
+        assert float(dense.weight[sel][k]) == float(dense.weight[sel].max())
+    assert dense.batch.tolist() == [0] * len(dense.index)
+    assert abs(float(dense.weight.sum()) - 2.0) < 1e-5
 
 
 def test_gaussian_radius_keeps_the_iou():

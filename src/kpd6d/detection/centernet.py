@@ -14,6 +14,7 @@ from __future__ import annotations
 
 import math
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import torch
 import torch.nn.functional as F
@@ -21,7 +22,7 @@ from torch import nn
 
 from kpd6d.detection.detections import DetectionInputError, Detector, load_partial_weights
 
-__all__ = ["CenterNet", "centernet_targets", "decode_centernet", "focal_loss", "gaussian_radius"]
+__all__ = ["CenterNet", "CenterNetTargets", "centernet_targets", "decode_centernet", "focal_loss", "gaussian_radius"]
 
 _MEAN = (0.485, 0.456, 0.406)
 _STD = (0.229, 0.224, 0.225)
@@ -40,14 +41,29 @@ def gaussian_radius(h: torch.Tensor, w: torch.Tensor, min_overlap: float = 0.7) 
     return torch.minimum(torch.minimum(r1, r2), r3)
 
 
+class CenterNetTargets(NamedTuple):
+    heatmap: torch.Tensor  # (B, C, h, w)
+    batch: torch.Tensor  # (M,) image of each regression sample
+    index: torch.Tensor  # (M,) flat cell index y*w + x
+    wh: torch.Tensor  # (M, 2) box size, output-grid units
+    offset: torch.Tensor  # (M, 2) box centre minus the cell, output-grid units
+    weight: torch.Tensor  # (M,) sample weights; each object's sum to 1
+
+
 def centernet_targets(targets: Sequence[dict], num_classes: int, out_hw: tuple[int, int], stride: int,
-                      device: torch.device | str = "cpu", min_overlap: float = 0.7):
+                      device: torch.device | str = "cpu", min_overlap: float = 0.7,
+                      dense: bool = False, dense_beta: float = 0.54) -> CenterNetTargets:
     """Training targets for a batch, built without a loop over boxes.
 
     ``targets[b]`` holds ``boxes`` (n, 4) xywh network px and ``labels`` (n,) class indices.
-    Returns ``heatmap`` (B, C, h, w) (Gaussian splats, max over overlapping objects), and for the
-    N boxes whose centre lies on the grid: ``batch`` (N,), ``index`` (N,) flat cell index y*w + x,
-    ``wh`` (N, 2) and ``offset`` (N, 2) regression targets.
+    Returns the ``heatmap`` (B, C, h, w) (Gaussian splats, max over overlapping objects) and the
+    size / offset regression samples of the N boxes whose centre lies on the grid. CenterNet
+    regresses at each box's centre cell only (M = N, weight 1). ``dense=True`` (after TTFNet)
+    regresses at every cell of the box's central region (``dense_beta`` of its width and height),
+    weighted by a Gaussian (sigma = ``dense_beta`` * size / 6) normalised per box, with the offset
+    target measured from that cell (``centre - cell``):
+    many more regression samples per image, so box sizes are learnt in fewer steps, and decoding is
+    unchanged (the peak cell's offset and size).
     """
     h, w = out_hw
     B = len(targets)
@@ -57,7 +73,8 @@ def centernet_targets(targets: Sequence[dict], num_classes: int, out_hw: tuple[i
     heat = torch.zeros((B * num_classes, h * w), dtype=torch.float32, device=device)
     empty = torch.zeros((0,), dtype=torch.long, device=device)
     if boxes.shape[0] == 0:
-        return heat.view(B, num_classes, h, w), empty, empty, boxes.new_zeros((0, 2)), boxes.new_zeros((0, 2))
+        return CenterNetTargets(heat.view(B, num_classes, h, w), empty, empty, boxes.new_zeros((0, 2)),
+                                boxes.new_zeros((0, 2)), boxes.new_zeros((0,)))
     if labels.numel() and (int(labels.min()) < 0 or int(labels.max()) >= num_classes):
         raise DetectionInputError(f"target labels must be class indices in [0, {num_classes}), got "
                                   f"{sorted(set(labels.tolist()))}")
@@ -76,9 +93,21 @@ def centernet_targets(targets: Sequence[dict], num_classes: int, out_hw: tuple[i
     gy = torch.exp(-(dy**2) / (2 * sigma[:, None] ** 2)) * (dy.abs() <= radius[:, None])
     g = (gy[:, :, None] * gx[:, None, :]).reshape(-1, h * w)  # (N, h*w), 1 at the centre cell
     row = (batch * num_classes + labels)[:, None].expand_as(g)
-    heat = heat.scatter_reduce(0, row, g, reduce="amax")
-    index = (cell[:, 1] * w + cell[:, 0]).long()
-    return heat.view(B, num_classes, h, w), batch, index, wh, c - cell
+    heat = heat.scatter_reduce(0, row, g, reduce="amax").view(B, num_classes, h, w)
+    if not dense:
+        index = (cell[:, 1] * w + cell[:, 0]).long()
+        return CenterNetTargets(heat, batch, index, wh, c - cell, torch.ones_like(wh[:, 0]))
+    # TTFNet's regression area: the central beta part of the box, Gaussian-weighted (sigma = beta * size / 6)
+    half = dense_beta * wh / 2  # (N, 2)
+    sig = torch.clamp(dense_beta * wh / 6, min=1e-3)
+    rx = torch.exp(-(dx**2) / (2 * sig[:, 0:1] ** 2)) * (dx.abs() <= half[:, 0:1])
+    ry = torch.exp(-(dy**2) / (2 * sig[:, 1:2] ** 2)) * (dy.abs() <= half[:, 1:2])
+    area = (ry[:, :, None] * rx[:, None, :]).reshape(-1, h * w)  # 1 at the centre cell, which is always in
+    n_idx, index = (area > 0).nonzero(as_tuple=True)
+    weight = area[n_idx, index]
+    weight = weight / torch.zeros_like(wh[:, 0]).index_add_(0, n_idx, weight)[n_idx]
+    xy = torch.stack([index % w, torch.div(index, w, rounding_mode="floor")], dim=1).to(c.dtype)
+    return CenterNetTargets(heat, batch[n_idx], index, wh[n_idx], c[n_idx] - xy, weight)
 
 
 def focal_loss(pred_logits: torch.Tensor, gt: torch.Tensor, alpha: float = 2.0, beta: float = 4.0) -> torch.Tensor:
@@ -134,7 +163,7 @@ class CenterNet(Detector):
                  neck_channels: int = 64, head_channels: int = 64, input_size: Sequence[int] | None = (320, 240),
                  score_threshold: float = 0.1, max_detections: int = 100, one_per_object: bool = False,
                  backbone_weights_path: str | None = None, wh_weight: float = 0.1, offset_weight: float = 1.0,
-                 min_overlap: float = 0.7) -> None:
+                 min_overlap: float = 0.7, dense_regression: bool = False) -> None:
         super().__init__(obj_ids, input_size, score_threshold, max_detections, one_per_object)
         import timm
 
@@ -161,6 +190,7 @@ class CenterNet(Detector):
         self.wh_head = _head(neck_channels, 2, head_channels)
         self.offset_head = _head(neck_channels, 2, head_channels)
         self.wh_weight, self.offset_weight, self.min_overlap = float(wh_weight), float(offset_weight), float(min_overlap)
+        self.dense_regression = bool(dense_regression)
         self.register_buffer("mean", torch.tensor(_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(_STD).view(1, 3, 1, 1), persistent=False)
         self._pad = max(reductions)
@@ -192,14 +222,14 @@ class CenterNet(Detector):
     def training_losses(self, images: torch.Tensor, targets: list[dict]) -> dict[str, torch.Tensor]:
         out = self(images)
         B, C, h, w = out["heatmap"].shape
-        heat, bidx, index, wh_t, off_t = centernet_targets(targets, C, (h, w), self.stride, images.device,
-                                                           self.min_overlap)
-        l_heat = focal_loss(out["heatmap"].float(), heat)
-        n = max(int(index.numel()), 1)
-        wh_p = out["wh"].float().reshape(B, 2, h * w)[bidx, :, index]
-        off_p = out["offset"].float().reshape(B, 2, h * w)[bidx, :, index]
-        l_wh = F.l1_loss(wh_p, wh_t, reduction="sum") / n
-        l_off = F.l1_loss(off_p, off_t, reduction="sum") / n
+        tg = centernet_targets(targets, C, (h, w), self.stride, images.device, self.min_overlap,
+                               dense=self.dense_regression)
+        l_heat = focal_loss(out["heatmap"].float(), tg.heatmap)
+        n = tg.weight.sum().clamp(min=1.0)  # = the number of boxes (each box's weights sum to 1)
+        wh_p = out["wh"].float().reshape(B, 2, h * w)[tg.batch, :, tg.index]
+        off_p = out["offset"].float().reshape(B, 2, h * w)[tg.batch, :, tg.index]
+        l_wh = (tg.weight[:, None] * (wh_p - tg.wh).abs()).sum() / n
+        l_off = (tg.weight[:, None] * (off_p - tg.offset).abs()).sum() / n
         total = l_heat + self.wh_weight * l_wh + self.offset_weight * l_off
         return {"loss": total, "loss_heatmap": l_heat, "loss_wh": l_wh, "loss_offset": l_off}
 

@@ -139,3 +139,19 @@ def test_box_jitter_changes_the_crop_not_the_geometry(lmo_dir, lmo_model_by_id):
     for it in (a, b):  # whatever the box, the crop keypoints are the image keypoints through the crop affine
         np.testing.assert_allclose(it["keypoints"].numpy(),
                                    affine_apply(it["affine"].numpy(), it["keypoints_image"].numpy()), atol=1e-4)
+
+
+def test_image_cache_gives_identical_items_within_its_budget(lmo_dir, lmo_model_by_id):
+    models = [lmo_model_by_id[1]]
+    kps = {1: lmo_model_by_id[1].bbox_corners}
+    common = dict(split="test", obj_ids=[1], keypoints=kps, models=models, input_size=64, min_visib_fract=0.3)
+    plain = KPDCropDataset(lmo_dir, **common)
+    one_image_mb = 640 * 480 * 3 / 2**20
+    cached = KPDCropDataset(lmo_dir, image_cache_mb=2.5 * one_image_mb, **common)  # room for two images
+    for _ in range(2):  # the second pass reads from the cache
+        for i in range(4):
+            a, b = plain[i], cached[i]
+            for key in ("image", "keypoints", "visibility", "heatmaps"):
+                torch.testing.assert_close(a[key], b[key])
+    assert len(cached._cache) == 2 and cached._cache_bytes <= 2.5 * one_image_mb * 2**20
+    assert not plain._cache

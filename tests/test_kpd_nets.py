@@ -50,6 +50,11 @@ def test_head_errors():
     net = KeypointNet({"name": "resnet18"}, {"name": "deconv", "deconv_channels": 8}, 4, num_groups=2)
     with pytest.raises(ValueError, match="object index"):
         net.select(torch.zeros(1, 8, 4, 4), None)
+    with pytest.raises(TypeError, match="deconv_channels"):  # a setting of the other head kind is an error ...
+        KeypointNet({"name": "resnet18"}, {"name": "fpn", "fpn_channels": 8, "deconv_channels": 8}, 4)
+    # ... unless null: how a preset inheriting the deconv head switches to the FPN head (conf/kpd/cpu_small.yaml)
+    net = KeypointNet({"name": "resnet18"}, {"name": "fpn", "fpn_channels": 8, "deconv_channels": None}, 4)
+    assert type(net.head).__name__ == "FPNHead"
 
 
 def test_local_pretrained_weights(tmp_path):

@@ -91,7 +91,7 @@ class KPDCropDataset(Dataset):
                  detections: str | os.PathLike | None = None, detection_iou: float = 0.5,
                  box_augment: Callable | None = None, min_visib_fract: float = 0.1,
                  visibility: str = "auto", return_heatmaps: bool = True, max_instances: int | None = None,
-                 models: Sequence | None = None) -> None:
+                 models: Sequence | None = None, image_cache_mb: float = 0.0) -> None:
         from kpd6d.data import BopDataset
 
         if box_source not in BOX_SOURCES:
@@ -124,6 +124,11 @@ class KPDCropDataset(Dataset):
         self.return_heatmaps = return_heatmaps
         self.detections = load_detection_boxes(detections) if box_source == "detections" else None
         self.detection_iou = float(detection_iou)
+        # decoded images kept in memory (per process) up to image_cache_mb: an epoch after the first
+        # then costs no JPEG decoding, which on a small CPU is a sizeable share of a training step
+        self.image_cache_mb = float(image_cache_mb)
+        self._cache: dict[int, np.ndarray] = {}
+        self._cache_bytes = 0
         self.items: list[tuple[int, int]] = []
         for fi, fr in enumerate(self.ds.frames):
             for ii, inst in enumerate(fr.instances):
@@ -142,6 +147,15 @@ class KPDCropDataset(Dataset):
         return len(self.items)
 
     # -- pieces -----------------------------------------------------------------------------------
+    def _rgb(self, fi: int) -> np.ndarray:
+        img = self._cache.get(fi)
+        if img is None:
+            img = self.ds.frames[fi].load_rgb()
+            if self._cache_bytes + img.nbytes <= self.image_cache_mb * 2**20:
+                self._cache[fi] = img
+                self._cache_bytes += img.nbytes
+        return img
+
     def _box(self, frame, inst) -> np.ndarray:
         gt = inst.bbox_visib if self.box_source in ("visib", "detections") else inst.bbox_obj
         if gt is None:  # no scene_gt_info: the box of the projected model
@@ -193,7 +207,7 @@ class KPDCropDataset(Dataset):
             box = self.box_augment(box, rng, obj_id=inst.obj_id)
         S = self.input_size
         A = box_to_crop_affine(box, S, scale=self.crop_scale)
-        rgb = frame.load_rgb()
+        rgb = self._rgb(fi)
         crop = cv2.warpAffine(rgb, A, (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         R, t = self._canon[inst.obj_id](np.asarray(inst.R, dtype=np.float64), np.asarray(inst.t, dtype=np.float64))
         K = np.asarray(frame.K, dtype=np.float64)

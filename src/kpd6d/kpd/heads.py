@@ -97,7 +97,8 @@ class KeypointNet(nn.Module):
         self.num_groups = int(num_groups)
         self.out_stride = int(out_stride)
         self.backbone = build_from_cfg(BACKBONES, backbone)
-        head = dict(head)
+        # null entries are unset: a preset that inherits another can switch head kinds
+        head = {k: v for k, v in dict(head).items() if v is not None}
         kind = head.pop("name", "deconv")
         if kind not in HEADS:
             raise ValueError(f"unknown head {kind!r}; known heads: {', '.join(sorted(HEADS))}")

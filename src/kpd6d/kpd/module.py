@@ -44,7 +44,7 @@ class KPDModule(pl.LightningModule):
                  input_size: int = 256, out_stride: int = 4, sigma: float = 2.0, crop_scale: float = 1.25,
                  decoder: Mapping | None = None, loss: Mapping | None = None, optimizer: Mapping | None = None,
                  scheduler: Mapping | None = None, augment: Mapping | None = None, top_l: int | None = None,
-                 pnp: Mapping | None = None) -> None:
+                 pnp: Mapping | None = None, channels_last: bool = True) -> None:
         super().__init__()
         obj_ids = [int(o) for o in obj_ids]
         n = len(obj_ids)
@@ -72,12 +72,14 @@ class KPDModule(pl.LightningModule):
             "decoder": to_plain(decoder) or {"name": "subpixel"},
             "loss": to_plain(loss) or {}, "optimizer": to_plain(optimizer) or {"name": "adam", "lr": 1e-3},
             "scheduler": to_plain(scheduler), "augment": to_plain(augment), "top_l": top_l,
-            "pnp": to_plain(pnp) or {"name": "epnp"},
+            "pnp": to_plain(pnp) or {"name": "epnp"}, "channels_last": bool(channels_last),
         })
         hp = self.hparams
         self.num_keypoints = kps[0].shape[0]
         self.net = KeypointNet(hp.backbone, hp.head, self.num_keypoints,
                                num_groups=n if grouping == "per_object" else 1, out_stride=hp.out_stride)
+        if hp.channels_last:  # NHWC convolutions: markedly faster on CPU (oneDNN), neutral elsewhere
+            self.net.to(memory_format=torch.channels_last)
         from kpd6d.registry import DECODERS, build_from_cfg
 
         self.decoder = build_from_cfg(DECODERS, hp.decoder)
@@ -146,6 +148,8 @@ class KPDModule(pl.LightningModule):
     # -- network ---------------------------------------------------------------------------------
     def forward(self, images: torch.Tensor, obj_index: torch.Tensor | None = None) -> torch.Tensor:
         """Crops (B, 3, S, S) in [0, 1] → heatmaps (B, k, S/s, S/s) of each sample's object group."""
+        if self.hparams.get("channels_last", False):
+            images = images.contiguous(memory_format=torch.channels_last)
         return self.net.select(self.net(images), obj_index)
 
     def targets(self, keypoints_crop: torch.Tensor) -> torch.Tensor:
@@ -243,12 +247,30 @@ class KPDModule(pl.LightningModule):
         scfg = dict(self.hparams.scheduler)
         sname = scfg.pop("name", None)
         interval = scfg.pop("interval", "epoch")
+        if sname in ("cosine_steps", "cosine_time"):  # warm-up + cosine over the run's steps or wall-clock budget
+            from kpd6d.schedules import WarmupCosine
+
+            warm, floor = int(scfg.pop("warmup_steps", 0)), float(scfg.pop("min_factor", 0.02))
+            if sname == "cosine_time":
+                budget = scfg.pop("budget_s", None)
+                if not budget:
+                    raise ValueError("scheduler cosine_time needs scheduler.budget_s (kpd6d-train fills it in from "
+                                     "trainer.max_time)")
+                factor = WarmupCosine(warm, floor, budget_s=float(budget))
+            else:
+                factor = WarmupCosine(warm, floor, total_steps=max(int(self.trainer.estimated_stepping_batches), 1))
+            if scfg:
+                raise ValueError(f"scheduler {sname}: unknown option(s) {sorted(scfg)}; known: warmup_steps, "
+                                 "min_factor" + (", budget_s" if sname == "cosine_time" else ""))
+            return {"optimizer": opt, "lr_scheduler": {
+                "scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "step"}}
         schedulers = {"step": torch.optim.lr_scheduler.StepLR, "multistep": torch.optim.lr_scheduler.MultiStepLR,
                       "cosine": torch.optim.lr_scheduler.CosineAnnealingLR,
                       "exponential": torch.optim.lr_scheduler.ExponentialLR,
                       "onecycle": torch.optim.lr_scheduler.OneCycleLR}
         if sname not in schedulers:
-            raise ValueError(f"unknown scheduler {sname!r}; known: {', '.join(sorted(schedulers))}")
+            known = ", ".join(sorted([*schedulers, "cosine_steps", "cosine_time"]))
+            raise ValueError(f"unknown scheduler {sname!r}; known: {known}")
         if sname == "onecycle" and "total_steps" not in scfg:
             scfg["total_steps"] = int(self.trainer.estimated_stepping_batches)
             interval = "step"

@@ -56,7 +56,7 @@ def build_datasets(cfg, root: Path):
 
         keypoints = load_keypoints(k.keypoints)
     train = KPDCropDataset(root, split=cfg.data.train_split, box_augment=build_box_augment(to_plain(k.box_augment)),
-                           keypoints=keypoints,
+                           keypoints=keypoints, image_cache_mb=float(k.get("image_cache_mb", 0) or 0),
                            return_heatmaps=not (k.augment and (k.augment.get("rotation_deg") or k.augment.get("translate")
                                                                 or k.augment.get("scale"))),
                            **common)
@@ -90,13 +90,21 @@ def train_kpd(cfg) -> Path:
     root = generate_if_needed(cfg, run_dir)
     train_ds, val_ds = build_datasets(cfg, root)
 
+    scheduler = to_plain(k.scheduler)
+    if scheduler and scheduler.get("name") == "cosine_time" and not scheduler.get("budget_s"):
+        from kpd6d.schedules import parse_max_time
+
+        scheduler["budget_s"] = parse_max_time(to_plain(k.trainer).get("max_time"))
+        if not scheduler["budget_s"]:
+            raise ValueError("stage.kpd.scheduler cosine_time decays over the wall-clock budget: set "
+                             "stage.kpd.trainer.max_time (e.g. 00:00:15:00) or stage.kpd.scheduler.budget_s")
     module = KPDModule.from_models(
         [train_ds.models[o] for o in train_ds.obj_ids], train_ds.keypoints_3d,
         backbone=to_plain(cfg.stage.backbone), head=to_plain(k.head), grouping=k.grouping,
         input_size=int(k.input_size), out_stride=int(k.out_stride), sigma=float(k.sigma),
         crop_scale=float(k.crop_scale), decoder=to_plain(cfg.stage.decoder), loss=to_plain(k.loss),
-        optimizer=to_plain(k.optimizer), scheduler=to_plain(k.scheduler), augment=to_plain(k.augment),
-        top_l=k.top_l, pnp=to_plain(k.pnp),
+        optimizer=to_plain(k.optimizer), scheduler=scheduler, augment=to_plain(k.augment),
+        top_l=k.top_l, pnp=to_plain(k.pnp), channels_last=bool(k.get("channels_last", True)),
     )
     nw = int(k.num_workers)
     loader_kw = dict(batch_size=int(k.batch_size), num_workers=nw, persistent_workers=nw > 0, pin_memory=False)

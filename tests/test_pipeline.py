@@ -158,3 +158,50 @@ def test_benchmark_pipeline_runs_and_prints_stages(capsys):
                  "--keypoints", "8", "--top-l", "6", "--device", "cpu"]) == 0
     out = capsys.readouterr().out
     assert "| fast | cpu | 1 | 1 |" in out and "detect ms" in out and "25 fps" in out
+
+
+class BoxSensitiveKPD(FakeKPD):
+    """Keypoints displaced by half the offset between the given box's centre and the object's true box
+    centre: a KPD that is only as good as its crop."""
+
+    def predict_keypoints(self, images, boxes, image_index, obj_ids):
+        self.calls += 1
+        self.boxes_seen.append(boxes.cpu().numpy().copy())
+        kps, confs = [], []
+        for box, b, oid in zip(boxes.cpu().numpy().astype(np.float64), image_index.tolist(), obj_ids.tolist()):
+            R, t, K = self.gt[(b, oid)]
+            uv = project_points(self.keypoints_3d[oid], K, R, t)
+            true = bbox_from_points(uv)
+            offset = (box[:2] + box[2:] / 2) - (true[:2] + true[2:] / 2)
+            kps.append(uv + 0.5 * offset)
+            confs.append(np.ones(K_PTS))
+        return torch.tensor(np.stack(kps), dtype=torch.float32), torch.tensor(np.stack(confs), dtype=torch.float32)
+
+
+def test_refine_boxes_recrops_on_the_estimated_pose():
+    kp3d, gt, targets = _scene(np.random.default_rng(0))
+    shifted = [dict(tg, boxes=tg["boxes"] + np.array([24.0, -16.0, 0.0, 0.0])) for tg in targets]  # detector error
+    errors = []
+    for n in (0, 1, 2):
+        kpd = BoxSensitiveKPD(kp3d, gt)
+        kpd.boxes_seen = []
+        pipe = PosePipeline(DETECTORS.build("oracle"), kpd, pnp="epnp", top_l=None, device="cpu", refine_boxes=n)
+        out = pipe.predict_batch(_images(), LINEMOD_K, shifted)
+        assert kpd.calls == n + 1
+        err = []
+        for b, preds in enumerate(out):
+            for p in preds:
+                R, t, K = gt[(b, p["obj_id"])]
+                want = project_points(kp3d[p["obj_id"]], K, R, t)
+                got = project_points(kp3d[p["obj_id"]], K, p["R"], p["t"])
+                err.append(np.linalg.norm(got - want, axis=1).mean())
+                np.testing.assert_allclose(p["box"], shifted[b]["boxes"][list(shifted[b]["obj_ids"]).index(p["obj_id"])])
+        errors.append(float(np.mean(err)))
+    # the box-centre error halves with every pass: ~14.4 px -> ~7.2 -> ~3.6 (the KPD moves points by half of it)
+    assert errors[0] == pytest.approx(0.5 * np.hypot(24, 16), rel=0.05)
+    assert errors[1] == pytest.approx(errors[0] / 2, rel=0.1) and errors[2] == pytest.approx(errors[0] / 4, rel=0.1)
+
+
+def test_refine_boxes_must_be_non_negative():
+    with pytest.raises(PipelineInputError, match="refine_boxes"):
+        PosePipeline(DETECTORS.build("oracle"), FakeKPD({}, {}), pnp="epnp", refine_boxes=-1, device="cpu")

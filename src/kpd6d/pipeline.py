@@ -6,6 +6,9 @@ per detected object: ``obj_id``, ``R`` (3, 3), ``t`` (3,) mm, ``score`` (the det
 (the top-l keypoints given to PnP) and ``ok`` / ``reason`` from PnP (``R``/``t`` are NaN when not
 ok: a failure, never dropped). :meth:`PosePipeline.predict_batch` does the same for a batch of
 images (one detector call, one KPD call over every object of every image, one batched PnP).
+``refine_boxes=n`` (default 0, the paper) repeats crop -> KPD -> PnP n more times, each time on the
+box of the object projected with the pose just estimated: the crop no longer depends on the
+detector's box size and centre, only on its finding the object.
 
 The KPD contract (``kpd6d.kpd``) does the crop, heatmap network and decoding inside
 ``predict_keypoints(images, boxes, image_index, obj_ids)``; the pipeline keeps the stage times of
@@ -65,7 +68,7 @@ class PosePipeline:
     of most confident keypoints passed to PnP (None: all)."""
 
     def __init__(self, detector, kpd, pnp: Any = "epnp_ransac", top_l: int | None = 20,
-                 device: str | torch.device | None = None) -> None:
+                 device: str | torch.device | None = None, refine_boxes: int = 0) -> None:
         if not hasattr(detector, "predict"):
             raise PipelineInputError(f"detector must have .predict(images, targets=None), got {type(detector).__name__}")
         if not hasattr(kpd, "predict_keypoints") or not hasattr(kpd, "keypoints_3d"):
@@ -78,6 +81,9 @@ class PosePipeline:
             raise PipelineInputError(f"top_l must be >= 4 (PnP needs at least 4 points) or None, got {top_l}")
         self.detector, self.kpd, self.pnp = detector, kpd, pnp
         self.top_l = None if top_l is None else int(top_l)
+        if int(refine_boxes) < 0:
+            raise PipelineInputError(f"refine_boxes must be >= 0, got {refine_boxes}")
+        self.refine_boxes = int(refine_boxes)
         self.device = torch.device(device) if device is not None else default_device()
         for m in (detector, kpd):
             if isinstance(m, torch.nn.Module):
@@ -88,7 +94,8 @@ class PosePipeline:
     @classmethod
     def from_checkpoints(cls, detector: str | os.PathLike, kpd: str | os.PathLike, *, pnp: Any = "epnp_ransac",
                          top_l: int | None = 20, device: str | torch.device | None = None,
-                         obj_ids: Sequence[int] | None = None, **detector_overrides: Any) -> PosePipeline:
+                         obj_ids: Sequence[int] | None = None, refine_boxes: int = 0,
+                         **detector_overrides: Any) -> PosePipeline:
         """Load a detector checkpoint (or ``"oracle"``) and a KPD checkpoint."""
         from kpd6d.kpd.module import KPDModule
 
@@ -102,7 +109,7 @@ class PosePipeline:
             from kpd6d.detection import load_detector
 
             det = load_detector(detector, obj_ids=obj_ids, map_location=device, **detector_overrides)
-        return cls(det, kpd_module, pnp=pnp, top_l=top_l, device=device)
+        return cls(det, kpd_module, pnp=pnp, top_l=top_l, device=device, refine_boxes=refine_boxes)
 
     # -- inference ------------------------------------------------------------------------------
     def __call__(self, image: np.ndarray, K, targets: dict | None = None) -> list[dict]:
@@ -142,22 +149,27 @@ class PosePipeline:
         boxes_t = torch.tensor(boxes, dtype=torch.float32, device=self.device)
         idx_t = torch.tensor(img_idx, dtype=torch.long, device=self.device)
         ids_t = torch.tensor(obj_ids, dtype=torch.long, device=self.device)
-        kp2d, conf = self.kpd.predict_keypoints(x, boxes_t, idx_t, ids_t)
-        kp2d = torch.as_tensor(kp2d).float()
-        conf = torch.as_tensor(conf).float()
-        used = top_l_mask(conf, self.top_l)
-        if self.device.type == "cuda":
-            torch.cuda.synchronize()
-        t2 = time.perf_counter()
-
-        kp2d_np = kp2d.detach().cpu().numpy().astype(np.float64)
-        conf_np = conf.detach().cpu().numpy().astype(np.float64)
-        used_np = used.detach().cpu().numpy()
-        k = kp2d_np.shape[1]
         pts3d = np.stack([np.asarray(self.kpd.keypoints_3d[o], dtype=np.float64).reshape(-1, 3) for o in obj_ids])
-        if pts3d.shape[1] != k:
-            raise PipelineInputError(f"KPD returned {k} keypoints but keypoints_3d has {pts3d.shape[1]}")
-        est = solve_top_l(self.pnp, pts3d, kp2d_np, Ks[np.asarray(img_idx)], conf_np, self.top_l)
+        t_kpd = t_pnp = 0.0
+        for it in range(self.refine_boxes + 1):
+            ta = time.perf_counter()
+            kp2d, conf = self.kpd.predict_keypoints(x, boxes_t, idx_t, ids_t)
+            kp2d = torch.as_tensor(kp2d).float()
+            conf = torch.as_tensor(conf).float()
+            used = top_l_mask(conf, self.top_l)
+            if self.device.type == "cuda":
+                torch.cuda.synchronize()
+            tb = time.perf_counter()
+            kp2d_np = kp2d.detach().cpu().numpy().astype(np.float64)
+            conf_np = conf.detach().cpu().numpy().astype(np.float64)
+            used_np = used.detach().cpu().numpy()
+            if pts3d.shape[1] != kp2d_np.shape[1]:
+                raise PipelineInputError(f"KPD returned {kp2d_np.shape[1]} keypoints but keypoints_3d has {pts3d.shape[1]}")
+            est = solve_top_l(self.pnp, pts3d, kp2d_np, Ks[np.asarray(img_idx)], conf_np, self.top_l)
+            t_kpd += tb - ta
+            t_pnp += time.perf_counter() - tb
+            if it < self.refine_boxes:
+                boxes_t = self._boxes_from_poses(est, obj_ids, img_idx, Ks, boxes_t, x.shape[-2:])
         t3 = time.perf_counter()
 
         R, t, ok = np.asarray(est.R), np.asarray(est.t), np.asarray(est.ok)
@@ -167,5 +179,28 @@ class PosePipeline:
                 "keypoints_2d": kp2d_np[n], "confidences": conf_np[n], "used": used_np[n],
                 "box": np.asarray(boxes[n]), "ok": bool(ok[n]), "reason": est.reasons[n],
             })
-        self.last_timings = {"detect": t1 - t0, "kpd": t2 - t1, "pnp": t3 - t2, "total": t3 - t0}
+        self.last_timings = {"detect": t1 - t0, "kpd": t_kpd, "pnp": t_pnp, "total": t3 - t0}
         return out
+
+    def _boxes_from_poses(self, est, obj_ids, img_idx, Ks, boxes_t, hw) -> torch.Tensor:
+        """Box refinement: each solved instance's box becomes the box of its object's surface points
+        (the model points a KPD checkpoint carries, else its keypoints) projected with the estimated
+        pose, clipped to the image; failed or degenerate ones keep their box."""
+        from kpd6d.geometry import bbox_from_points, project_points
+
+        surface = getattr(self.kpd, "surface_points", None)
+        H, W = int(hw[0]), int(hw[1])
+        new = boxes_t.detach().cpu().numpy().astype(np.float64)
+        for n, (oid, b) in enumerate(zip(obj_ids, img_idx)):
+            if not bool(est.ok[n]):
+                continue
+            pts = surface(oid) if surface is not None else np.asarray(self.kpd.keypoints_3d[oid], dtype=np.float64)
+            uv, z = project_points(pts, Ks[b], np.asarray(est.R[n]), np.asarray(est.t[n]), return_depth=True)
+            if not (z > 0).all() or not np.isfinite(uv).all():
+                continue
+            lo = np.clip(uv.min(0), 0, [W, H])
+            hi = np.clip(uv.max(0), 0, [W, H])
+            if (hi - lo).min() < 2:
+                continue
+            new[n] = bbox_from_points(np.stack([lo, hi]))
+        return torch.as_tensor(new, dtype=boxes_t.dtype, device=boxes_t.device)

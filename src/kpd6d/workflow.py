@@ -152,7 +152,7 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
         "data": {"root": str(root), "split": cfg.evaluate.split, "targets": "auto", "obj_ids": to_plain(cfg.objects.obj_ids),
                  "max_frames": cfg.evaluate.max_frames},
         "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
-        "batch_size": int(cfg.evaluate.batch_size), "device": None, "overlays": int(cfg.evaluate.overlays),
+        "batch_size": int(cfg.evaluate.batch_size), "refine_boxes": int(cfg.evaluate.get("refine_boxes", 0) or 0), "device": None, "overlays": int(cfg.evaluate.overlays),
         "progress": bool(cfg.progress),
     })
     metrics = run_evaluation(ecfg, run_dir / "eval")

@@ -29,7 +29,8 @@ def run_evaluation(cfg, out_dir: str | Path) -> dict:
     top_l = cfg.select.top_l
     obj_ids = list(cfg.data.obj_ids) if cfg.data.obj_ids else None
     pipeline = PosePipeline.from_checkpoints(cfg.detector_ckpt, cfg.kpd_ckpt, pnp=pnp_cfg, top_l=top_l,
-                                             device=cfg.device, obj_ids=obj_ids)
+                                             device=cfg.device, obj_ids=obj_ids,
+                                             refine_boxes=int(cfg.get("refine_boxes", 0) or 0))
     covered = sorted(int(o) for o in pipeline.kpd.keypoints_3d)
     wanted = obj_ids if obj_ids is not None else covered
     missing = sorted(set(wanted) - set(covered))
@@ -37,7 +38,7 @@ def run_evaluation(cfg, out_dir: str | Path) -> dict:
         raise ValueError(f"data.obj_ids {missing} are not covered by the KPD checkpoint {cfg.kpd_ckpt} (it covers {covered})")
     ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(cfg.kpd_ckpt), "pnp": pnp_cfg,
-            "top_l": top_l, "device": str(pipeline.device)}
+            "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "device": str(pipeline.device)}
     return evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle", batch_size=int(cfg.batch_size),
                     max_frames=cfg.data.max_frames, n_overlays=int(cfg.overlays), run_info=info,
                     progress=bool(cfg.progress))

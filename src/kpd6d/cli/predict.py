@@ -206,7 +206,7 @@ def main(cfg) -> None:
     out_dir = cfg.out_dir or HydraConfig.get().runtime.output_dir
     K = load_intrinsics(cfg.camera)
     pipe = PosePipeline.from_checkpoints(cfg.detector_ckpt, cfg.kpd_ckpt, pnp=OmegaConf.to_container(cfg.pnp, resolve=True),
-                                         top_l=cfg.select.top_l,
+                                         top_l=cfg.select.top_l, refine_boxes=int(cfg.get("refine_boxes", 0) or 0),
                                          device=cfg.device)
     info = predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=int(cfg.batch_size),
                           overlays=bool(cfg.overlays), progress=bool(cfg.progress))

@@ -108,6 +108,13 @@ class KPDModule(pl.LightningModule):
         """obj_id → (k, 3) keypoints (model frame, mm)."""
         return {o: np.asarray(k, dtype=np.float64) for o, k in zip(self.hparams.obj_ids, self.hparams.keypoints_3d)}
 
+    def surface_points(self, obj_id: int) -> np.ndarray:
+        """(P, 3) points on the object's surface (model frame, mm): the model points the checkpoint
+        carries for its metrics, else the keypoints."""
+        i = self._obj_index[int(obj_id)]
+        pts = self.hparams.model_points[i] if self.hparams.model_points is not None else self.hparams.keypoints_3d[i]
+        return np.asarray(pts, dtype=np.float64)
+
     @property
     def heatmap_size(self) -> int:
         return self.hparams.input_size // self.hparams.out_stride

@@ -57,3 +57,22 @@ def test_missing_data_root_is_named(tmp_path):
 
     with pytest.raises(FileNotFoundError, match="nowhere"):
         train_kpd(_cfg(tmp_path, f"data.root={tmp_path / 'nowhere'}"))
+
+
+def test_cosine_time_scheduler_takes_its_budget_from_max_time(tmp_path):
+    from kpd6d.kpd.module import KPDModule
+    from kpd6d.kpd.train import scheduler_config, train_kpd
+
+    cfg = _cfg(tmp_path, "stage.kpd.scheduler={name:cosine_time,warmup_steps:0}", "stage.kpd.trainer.max_time=00:00:02:30")
+    sched = scheduler_config(cfg.stage.kpd)
+    assert sched == {"name": "cosine_time", "warmup_steps": 0, "budget_s": 150.0}
+    # the module turns it into a LambdaLR over the budget, stepped every optimiser step
+    m = KPDModule(obj_ids=[1], keypoints_3d=[[[0, 0, 0]] * 4], diameters=[100.0], backbone={"name": "tiny"},
+                  head={"name": "deconv", "deconv_channels": 8}, input_size=32, scheduler=sched)
+    opt = m.configure_optimizers()
+    assert opt["lr_scheduler"]["interval"] == "step"
+    assert opt["lr_scheduler"]["scheduler"].lr_lambdas[0].budget_s == 150.0
+    # no budget: named, before any data is generated
+    with pytest.raises(ValueError, match="trainer.max_time"):
+        train_kpd(_cfg(tmp_path, "stage.kpd.scheduler={name:cosine_time}"))
+    assert not (tmp_path / "data").exists()

@@ -18,7 +18,7 @@ from pathlib import Path
 
 from kpd6d.config import run_dir_of, to_plain
 
-__all__ = ["build_datasets", "generate_if_needed", "train_kpd"]
+__all__ = ["build_datasets", "generate_if_needed", "scheduler_config", "train_kpd"]
 
 
 def generate_if_needed(cfg, run_dir: Path) -> Path:
@@ -70,6 +70,19 @@ def build_datasets(cfg, root: Path):
     return train, val
 
 
+def scheduler_config(k) -> dict | None:
+    """``stage.kpd.scheduler`` as a dict; ``cosine_time`` gets its budget from ``trainer.max_time``."""
+    scheduler = to_plain(k.scheduler)
+    if scheduler and scheduler.get("name") == "cosine_time" and not scheduler.get("budget_s"):
+        from kpd6d.schedules import parse_max_time
+
+        scheduler["budget_s"] = parse_max_time(to_plain(k.trainer).get("max_time"))
+        if not scheduler["budget_s"]:
+            raise ValueError("stage.kpd.scheduler cosine_time decays over the wall-clock budget: set "
+                             "stage.kpd.trainer.max_time (e.g. 00:00:15:00) or stage.kpd.scheduler.budget_s")
+    return scheduler
+
+
 def train_kpd(cfg) -> Path:
     """Train the KPD stage; returns the run directory."""
     import pytorch_lightning as pl
@@ -82,6 +95,7 @@ def train_kpd(cfg) -> Path:
 
     t0 = time.time()
     k = cfg.stage.kpd
+    scheduler = scheduler_config(k)  # config errors before any data is generated
     run_dir = run_dir_of(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     if k.get("num_threads"):
@@ -90,14 +104,6 @@ def train_kpd(cfg) -> Path:
     root = generate_if_needed(cfg, run_dir)
     train_ds, val_ds = build_datasets(cfg, root)
 
-    scheduler = to_plain(k.scheduler)
-    if scheduler and scheduler.get("name") == "cosine_time" and not scheduler.get("budget_s"):
-        from kpd6d.schedules import parse_max_time
-
-        scheduler["budget_s"] = parse_max_time(to_plain(k.trainer).get("max_time"))
-        if not scheduler["budget_s"]:
-            raise ValueError("stage.kpd.scheduler cosine_time decays over the wall-clock budget: set "
-                             "stage.kpd.trainer.max_time (e.g. 00:00:15:00) or stage.kpd.scheduler.budget_s")
     module = KPDModule.from_models(
         [train_ds.models[o] for o in train_ds.obj_ids], train_ds.keypoints_3d,
         backbone=to_plain(cfg.stage.backbone), head=to_plain(k.head), grouping=k.grouping,

@@ -73,6 +73,6 @@ def test_cosine_time_scheduler_takes_its_budget_from_max_time(tmp_path):
     assert opt["lr_scheduler"]["interval"] == "step"
     assert opt["lr_scheduler"]["scheduler"].lr_lambdas[0].budget_s == 150.0
     # no budget: named, before any data is generated
-    with pytest.raises(ValueError, match="trainer.max_time"):
+    with pytest.raises(ValueError, match=r"trainer\.max_time"):
         train_kpd(_cfg(tmp_path, "stage.kpd.scheduler={name:cosine_time}"))
     assert not (tmp_path / "data").exists()

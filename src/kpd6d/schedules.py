@@ -21,7 +21,7 @@ class WarmupCosine:
 
     # LambdaLR.state_dict saves ``__dict__``: the clock reading lives in a slot, outside it, so a
     # resumed run does not count the time it was stopped
-    __slots__ = ("_last", "__dict__")
+    __slots__ = ("__dict__", "_last")
 
     def __init__(self, warmup_steps: int = 0, min_factor: float = 0.02, total_steps: int | None = None,
                  budget_s: float | None = None) -> None:

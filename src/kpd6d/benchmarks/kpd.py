@@ -1,6 +1,6 @@
 """KPD accuracy benchmark: train on a procedural single-object dataset, test on a differently seeded one.
 
-``kpd6d-benchmark kpd [--out DIR] [--minutes 15] [--backbone resnet18] [--obj-id 1] [--num-train 800]
+``kpd6d-benchmark kpd [--out DIR] [--minutes 15] [--backbone resnet18] [--obj-id 1] [--num-train 4000]
 [--num-val 50] [--num-test 100] [HYDRA_OVERRIDE ...]`` generates ``train`` (seed 1), ``val`` (seed 2,
 checkpoint selection) and ``test`` (seed 3) splits of procedural object ``--obj-id`` (resumable), trains
 with ``kpd@stage.kpd=cpu_small`` under a ``--minutes`` wall-clock cap, then evaluates the best checkpoint
@@ -23,10 +23,10 @@ def main(argv: list[str]) -> int:
     ap.add_argument("--backbone", default="resnet18")
     ap.add_argument("--preset", default="cpu_small", help="conf/kpd/ preset")
     ap.add_argument("--obj-id", type=int, default=1)
-    ap.add_argument("--num-train", type=int, default=800)
+    ap.add_argument("--num-train", type=int, default=4000, help="training images (800 over-fits within 15 min)")
     ap.add_argument("--num-val", type=int, default=50)
     ap.add_argument("--num-test", type=int, default=100)
-    ap.add_argument("--workers", type=int, default=1, help="rendering processes")
+    ap.add_argument("--workers", type=int, default=2, help="rendering processes")
     ap.add_argument("overrides", nargs="*", help="extra Hydra overrides of conf/train.yaml")
     args = ap.parse_args(argv)
 

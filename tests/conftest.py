@@ -42,3 +42,15 @@ def lmo_models(lmo_dir: Path):
 @pytest.fixture(scope="session")
 def lmo_model_by_id(lmo_models):
     return {m.obj_id: m for m in lmo_models}
+
+
+@pytest.fixture
+def one_torch_thread():
+    """One torch thread for the test: ``pytest -n 2`` already fills both cores, so more threads per
+    worker only contend. Use with ``pytestmark = pytest.mark.usefixtures("one_torch_thread")``."""
+    import torch
+
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)

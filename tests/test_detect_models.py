@@ -17,13 +17,7 @@ from kpd6d.registry import DETECTORS, UnknownNameError, build_from_cfg
 OBJ_IDS = [3, 7, 11]
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """pytest -n 2 already fills both cores; more torch threads per worker only contend."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _check_detections(dets, n_images, device="cpu", max_det=None, obj_ids=OBJ_IDS):

@@ -81,13 +81,7 @@ def _write_toy_bop(root: Path, split: str, n: int, seed: int, W: int = 96, H: in
     return root
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """pytest -n 2 already fills both cores; more torch threads per worker only contend."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 @pytest.fixture(scope="module")

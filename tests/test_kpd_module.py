@@ -20,13 +20,7 @@ from kpd6d.kpd.module import KPDModule
 K_PTS = 6
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    # torch's intra-op threads spin against each other on a loaded 2-core machine (xdist workers)
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _module(**kw):

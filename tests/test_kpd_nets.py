@@ -7,13 +7,7 @@ from kpd6d.kpd.backbones import BackboneWeightsError
 from kpd6d.kpd.heads import KeypointNet
 from kpd6d.registry import BACKBONES, UnknownNameError
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def test_registered_backbones():

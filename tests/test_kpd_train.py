@@ -3,18 +3,11 @@
 import json
 
 import pytest
-import torch
 from hydra import compose, initialize_config_dir
 
 from kpd6d.paths import config_dir
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
 
 
 def _cfg(tmp_path, *extra):

@@ -152,13 +152,24 @@ def test_resume_skips_done_frames(tmp_path):
     root, poses, K = make_dataset(tmp_path / "ds", n_frames=4)
     out = tmp_path / "run"
     first = evaluate(_pipeline(BoxKeyedKPD(root, poses, K)), BopDataset(root), out, oracle=True, n_overlays=0,
-                     progress=False)
+                     progress=False, run_info={"pnp": "epnp", "device": "cpu"})
     lines = (out / "predictions.jsonl").read_text().splitlines()
     (out / "predictions.jsonl").write_text("\n".join(lines[:2]) + "\n" + lines[2][:20])  # cut mid-line
     kpd = BoxKeyedKPD(root, poses, K)
-    again = evaluate(_pipeline(kpd), BopDataset(root), out, oracle=True, n_overlays=0, progress=False)
+    again = evaluate(_pipeline(kpd), BopDataset(root), out, oracle=True, n_overlays=0, progress=False,
+                     run_info={"pnp": "epnp", "device": "cuda"})  # another device is the same settings
     assert kpd.calls == 2  # frames 2 and 3 only (batch size 1)
     assert again["mean"] == first["mean"]
+    # the same folder with other settings: an error naming them, and the predictions are kept
+    with pytest.raises(ValueError, match=r"other settings \(pnp, top_l: pnp was 'epnp', now 'sqpnp'"):
+        evaluate(_pipeline(BoxKeyedKPD(root, poses, K)), BopDataset(root), out, oracle=True, n_overlays=0,
+                 progress=False, run_info={"pnp": "sqpnp", "top_l": 4})
+    # every frame's record is intact, the cut line stays on a line of its own
+    recs = (out / "predictions.jsonl").read_text().splitlines()
+    assert len(recs) == 5 and sorted(json.loads(r)["im_id"] for r in recs if r != lines[2][:20]) == [0, 1, 2, 3]
+    kpd = BoxKeyedKPD(root, poses, K)
+    evaluate(_pipeline(kpd), BopDataset(root), out, oracle=True, n_overlays=0, progress=False, run_info={"pnp": "epnp"})
+    assert kpd.calls == 0  # same settings: nothing redone
 
 
 def _tiny_kpd_checkpoint(path):

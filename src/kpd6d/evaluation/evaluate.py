@@ -137,6 +137,34 @@ def _batches(frames, batch_size):
         yield frames[i:i + batch_size]
 
 
+_SETTINGS_FILE = "settings.json"
+
+
+def _check_resumable(out_dir: Path, run_info: dict | None, oracle: bool) -> None:
+    """Predictions in ``out_dir`` are reused only when they were made with the same settings
+    (``run_info`` minus the device): rerunning with another solver, top-l, refinement or checkpoint
+    into the same folder is an error that names the differences, never a silent mix."""
+    import json
+
+    from kpd6d.data import atomic_write_json
+
+    settings = json.loads(json.dumps({k: v for k, v in (run_info or {}).items() if k != "device"} | {"oracle": oracle},
+                                     default=str))
+    path = out_dir / _SETTINGS_FILE
+    if path.is_file():
+        old = json.loads(path.read_text())
+        diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+        if diff:
+            raise ValueError(f"{out_dir} holds predictions made with other settings ({', '.join(diff)}: "
+                             + "; ".join(f"{k} was {old.get(k)!r}, now {settings.get(k)!r}" for k in diff)
+                             + "); evaluate into a new folder")
+    elif (out_dir / "predictions.jsonl").is_file():
+        raise ValueError(f"{out_dir} holds predictions.jsonl without {_SETTINGS_FILE}: cannot tell which settings "
+                         "made them; evaluate into a new folder")
+    else:
+        atomic_write_json(path, settings)
+
+
 def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = False, batch_size: int = 1,
              max_frames: int | None = None, n_overlays: int = 6, run_info: dict | None = None, progress: bool = True) -> dict:
     """Evaluate ``pipeline`` on ``dataset`` (a :class:`kpd6d.data.BopDataset`); writes everything to ``out_dir``.
@@ -162,8 +190,19 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     symmetric = {o: m.is_symmetric for o, m in models.items()}
 
     pred_path = out_dir / "predictions.jsonl"
+    _check_resumable(out_dir, run_info, oracle)
     done = _load_done(pred_path)
     todo = [f for f in frames if (f.scene_id, f.im_id) not in done]
+    if pred_path.is_file() and pred_path.stat().st_size:
+        with pred_path.open("rb") as f:
+            f.seek(-1, os.SEEK_END)
+            cut = f.read(1) != b"\n"
+        if cut:  # a line cut by an interruption: end it, so the next record starts on its own line
+            with pred_path.open("a") as f:
+                f.write("\n")
+    if done and progress:
+        print(f"evaluate: resuming {out_dir}: {len(frames) - len(todo)} of {len(frames)} frames already in "
+              f"{pred_path.name}", flush=True)
     with pred_path.open("a") as fout, tqdm(total=len(frames), initial=len(frames) - len(todo), desc="evaluate",
                                            unit="frame", disable=not progress) as bar:
         for batch in _batches(todo, max(1, int(batch_size))):

@@ -59,6 +59,7 @@ def train_detector(cfg: Any) -> Path:
     from kpd6d.detection.dataset import DetectionDataset, collate_detection
     from kpd6d.detection.detectors import save_detector
     from kpd6d.detection.module import DetectorModule
+    from kpd6d.ema import ema_callback
 
     st = to_plain(_get(cfg, "stage")) or {}
     det_cfg = dict(to_plain(_get(cfg, "detector")) or {})
@@ -111,6 +112,8 @@ def train_detector(cfg: Any) -> Path:
     if val_dl is not None:
         callbacks.append(ModelCheckpoint(dirpath=ckpt_dir, filename="best-{epoch}", monitor="val/map_50", mode="max",
                                          save_top_k=1))
+    ema = ema_callback(st.get("ema_decay"))
+    callbacks = ema + callbacks
     max_minutes = st.get("max_minutes")
     trainer = pl.Trainer(
         default_root_dir=str(run_dir),
@@ -131,6 +134,8 @@ def train_detector(cfg: Any) -> Path:
     t0 = time.time()
     trainer.fit(module, train_dl, val_dl, ckpt_path=ckpt_path)
     wall = time.time() - t0
+    for cb in ema:  # export the weight average
+        cb.apply_to(module)
     det = module.detector.cpu().eval()
     out = save_detector(det, run_dir / "detector.pt")
     summary = {"detector": str(out), "obj_ids": det_cfg["obj_ids"], "train_wall_s": wall,

@@ -91,6 +91,7 @@ def train_kpd(cfg) -> Path:
     from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
 
     from kpd6d.data import atomic_write_json
+    from kpd6d.ema import ema_callback
     from kpd6d.kpd.module import KPDModule
 
     t0 = time.time()
@@ -125,6 +126,7 @@ def train_kpd(cfg) -> Path:
                         mode="max" if val_ds is not None else "min", save_top_k=1, save_last=True),
         TQDMProgressBar(refresh_rate=max(1, int(k.get("progress_refresh", 1)))),
         LearningRateMonitor(logging_interval="epoch"),
+        *ema_callback(k.get("ema_decay")),  # checkpoints then hold the weight average
     ]
     # a new version_N per (re)start, so resuming keeps the earlier logs
     loggers = [TensorBoardLogger(str(run_dir), name="tb"), CSVLogger(str(run_dir), name="csv")]

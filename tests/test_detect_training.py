@@ -211,7 +211,8 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     run = tmp_path / "run"
     args = [sys.executable, "-m", "kpd6d.cli.train", "stage=detector", "detector=centernet_tiny",
             f"data.root={toy_root}", f"hydra.run.dir={run}", "stage.recipe=fast", "stage.max_epochs=2",
-            "stage.num_threads=1", "stage.batch_size=4", "detector.input_size=[96,64]", "stage.augment.scale=0.1"]
+            "stage.num_threads=1", "stage.batch_size=4", "detector.input_size=[96,64]", "stage.augment.scale=0.1",
+            "stage.ema_decay=0.9"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     res = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -228,6 +229,8 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     assert list((run / "tb").rglob("events.out.tfevents*"))
     summary = json.loads((run / "summary.json").read_text())
     assert summary["epochs"] == 2 and 0.0 <= summary["map_50"] <= 1.0
+    # weight averaging: the checkpoint carries its state; the exported detector is the average
+    assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["callbacks"]["WeightEMA"]["num_updates"] > 0
     # the Lightning checkpoint loads as a detector too, without the config
     ckpt = load_detector(run / "checkpoints" / "last.ckpt")
     x = torch.rand(1, 3, 64, 96)

@@ -69,3 +69,19 @@ def test_cosine_time_scheduler_takes_its_budget_from_max_time(tmp_path):
     with pytest.raises(ValueError, match=r"trainer\.max_time"):
         train_kpd(_cfg(tmp_path, "stage.kpd.scheduler={name:cosine_time}"))
     assert not (tmp_path / "data").exists()
+
+
+def test_ema_decay_adds_the_weight_average(tmp_path):
+    import torch
+
+    from kpd6d.kpd.module import KPDModule
+    from kpd6d.kpd.train import train_kpd
+
+    run = train_kpd(_cfg(tmp_path, "stage.kpd.ema_decay=0.9"))
+    ckpt = torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)
+    state = ckpt["callbacks"]["WeightEMA"]
+    assert state["decay"] == 0.9 and state["num_updates"] >= 1
+    # the checkpoint's weights are the average, the raw ones ride along for resuming
+    key = next(k for k in state["raw"] if k.endswith("weight"))
+    assert not torch.equal(ckpt["state_dict"][key], state["raw"][key])
+    assert KPDModule.load_checkpoint(run / "checkpoints" / "best.ckpt").obj_ids == [2]

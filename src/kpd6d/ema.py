@@ -28,6 +28,10 @@ def _float_state(module: torch.nn.Module) -> dict[str, torch.Tensor]:
     return {k: v for k, v in module.state_dict().items() if torch.is_floating_point(v)}
 
 
+def _float_copy(module: torch.nn.Module) -> dict[str, torch.Tensor]:
+    return {k: v.detach().clone() for k, v in _float_state(module).items()}
+
+
 class WeightEMA(pl.Callback):
     """See the module docstring. ``decay`` in (0, 1): about ``1 / (1 - decay)`` steps are averaged."""
 
@@ -50,7 +54,7 @@ class WeightEMA(pl.Callback):
         """One averaging step towards ``module``'s current floating-point state."""
         cur = _float_state(module)
         if self.ema is None or self.ema.keys() != cur.keys():
-            self.ema = {k: v.detach().clone() for k, v in cur.items()}
+            self.ema = _float_copy(module)
             self.num_updates = 0
             return
         self.num_updates += 1
@@ -75,7 +79,7 @@ class WeightEMA(pl.Callback):
     def _swap_in(self, module: torch.nn.Module) -> None:
         if self.ema is None or self._raw is not None:
             return
-        self._raw = {k: v.detach().clone() for k, v in _float_state(module).items()}
+        self._raw = _float_copy(module)
         self._copy_into(module, self.ema)
 
     def _swap_out(self, module: torch.nn.Module) -> None:
@@ -87,7 +91,7 @@ class WeightEMA(pl.Callback):
     def on_fit_start(self, trainer: pl.Trainer, pl_module: pl.LightningModule) -> None:
         self._module = pl_module
         if self._resume_raw is not None:  # resumed: the module holds the checkpoint's average
-            self.ema = {k: v.detach().clone() for k, v in _float_state(pl_module).items()}
+            self.ema = _float_copy(pl_module)
             self._copy_into(pl_module, {k: v.to(self.ema[k].device) for k, v in self._resume_raw.items()})
             self._resume_raw = None
         elif self.ema is None:
@@ -110,9 +114,7 @@ class WeightEMA(pl.Callback):
     def on_save_checkpoint(self, trainer, pl_module, checkpoint: dict[str, Any]) -> None:
         if self.ema is None:
             return
-        sd = dict(checkpoint["state_dict"])
-        sd.update({k: v.detach().clone() for k, v in self.ema.items()})
-        checkpoint["state_dict"] = sd
+        checkpoint["state_dict"] = {**checkpoint["state_dict"], **self.ema}  # serialised at once: no copy needed
 
     def state_dict(self) -> dict[str, Any]:
         raw = self._raw

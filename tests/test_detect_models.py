@@ -10,7 +10,14 @@ import pytest
 import torch
 
 from kpd6d.detection import DetectionInputError, Detections, build_detector, load_detector, save_detector
-from kpd6d.detection.centernet import centernet_targets, decode_centernet, focal_loss, gaussian_radius
+from kpd6d.detection.centernet import (
+    CenterNet,
+    centernet_targets,
+    decode_centernet,
+    focal_loss,
+    gaussian_radius,
+    giou_loss,
+)
 from kpd6d.detection.detections import keep_best_per_class
 from kpd6d.registry import DETECTORS, UnknownNameError, build_from_cfg
 
@@ -193,6 +200,38 @@ def test_gaussian_radius_keeps_the_iou():
         ious = [iou(box, (r, r, w + r, h + r)), iou(box, (r, r, w - r, h - r)), iou(box, (-r, -r, w + r, h + r))]
         assert min(ious) == pytest.approx(0.7, abs=1e-4)  # the binding case sits exactly on the limit
         assert all(v >= 0.7 - 1e-4 for v in ious)
+
+
+def test_giou_loss_of_hand_computed_boxes():
+    # boxes as (centre offset, size) about the same cell; expected 1 - GIoU from their corners
+    off = torch.tensor([[0.0, 0.0], [0.0, 0.0], [0.0, 0.0], [0.0, 0.0]])
+    wh = torch.tensor([[2.0, 2.0], [2.0, 2.0], [2.0, 2.0], [-1.0, 2.0]])
+    off_gt = torch.tensor([[0.0, 0.0], [1.0, 0.0], [4.0, 0.0], [0.0, 0.0]])
+    wh_gt = torch.full((4, 2), 2.0)
+    # same box: 0; shifted by half: IoU 2/6, hull area 6 = union -> 2/3; disjoint: IoU 0, hull 12, union 8
+    # -> 1 + 4/12; a negative width is an empty box: IoU 0, hull = union -> 1
+    expect = [0.0, 2.0 / 3.0, 1.0 + 4.0 / 12.0, 1.0]
+    assert giou_loss(off, wh, off_gt, wh_gt).tolist() == pytest.approx(expect, abs=1e-6)
+
+
+def test_centernet_giou_term_trains_the_size_head():
+    net = CenterNet(obj_ids=[1, 2], backbone="resnet18", input_size=None, dense_regression=True, giou_weight=2.0)
+    # start from boxes of a few cells (at init the sizes are ~0: empty boxes inside the target give
+    # the centre no GIoU gradient; the L1 terms handle that phase)
+    torch.nn.init.constant_(net.wh_head[-1].bias, 4.0)
+    images = torch.rand(2, 3, 64, 96)
+    targets = [{"boxes": torch.tensor([[10.0, 12.0, 30.0, 20.0]]), "labels": torch.tensor([1])},
+               {"boxes": torch.tensor([[40.0, 8.0, 24.0, 40.0]]), "labels": torch.tensor([0])}]
+    losses = net.training_losses(images, targets)
+    expect = (losses["loss_heatmap"] + net.wh_weight * losses["loss_wh"] + net.offset_weight * losses["loss_offset"]
+              + 2.0 * losses["loss_giou"])
+    assert float(losses["loss"]) == pytest.approx(float(expect), rel=1e-6)
+    assert 0.0 < float(losses["loss_giou"]) <= 2.0
+    net.zero_grad()
+    losses["loss_giou"].backward()
+    assert net.wh_head[-1].weight.grad.abs().sum() > 0 and net.offset_head[-1].weight.grad.abs().sum() > 0
+    assert net.heat_head[-1].weight.grad is None or net.heat_head[-1].weight.grad.abs().sum() == 0
+    assert "loss_giou" not in CenterNet(obj_ids=[1], input_size=None).training_losses(images, [targets[1]] * 2)
 
 
 def test_focal_loss_matches_a_direct_formula():

@@ -22,7 +22,8 @@ from torch import nn
 
 from kpd6d.detection.detections import DetectionInputError, Detector, load_partial_weights
 
-__all__ = ["CenterNet", "CenterNetTargets", "centernet_targets", "decode_centernet", "focal_loss", "gaussian_radius"]
+__all__ = ["CenterNet", "CenterNetTargets", "centernet_targets", "decode_centernet", "focal_loss", "gaussian_radius",
+           "giou_loss"]
 
 _MEAN = (0.485, 0.456, 0.406)
 _STD = (0.229, 0.224, 0.225)
@@ -123,6 +124,18 @@ def focal_loss(pred_logits: torch.Tensor, gt: torch.Tensor, alpha: float = 2.0, 
     return (pos_loss.sum() + neg_loss.sum()) / torch.clamp(num_pos, min=1.0)
 
 
+def giou_loss(offset: torch.Tensor, wh: torch.Tensor, offset_gt: torch.Tensor, wh_gt: torch.Tensor) -> torch.Tensor:
+    """Per-sample ``1 - GIoU`` (Rezatofighi et al. 2019) between the boxes that (centre offset, size)
+    pairs (M, 2) describe about the same cell (output-grid units). Predicted sizes are clamped at 0,
+    so a negative size counts as an empty box (its L1 term still pulls it back)."""
+    from torchvision.ops import generalized_box_iou_loss
+
+    def xyxy(off, size):
+        return torch.cat([off - size / 2, off + size / 2], dim=1)
+
+    return generalized_box_iou_loss(xyxy(offset, wh.clamp(min=0)), xyxy(offset_gt, wh_gt), reduction="none")
+
+
 def decode_centernet(heat: torch.Tensor, wh: torch.Tensor, offset: torch.Tensor, stride: int, k: int = 100):
     """Peaks of ``heat`` (B, C, h, w) (probabilities) -> top-``k`` boxes per image, batched.
 
@@ -163,7 +176,7 @@ class CenterNet(Detector):
                  neck_channels: int = 64, head_channels: int = 64, input_size: Sequence[int] | None = (320, 240),
                  score_threshold: float = 0.1, max_detections: int = 100, one_per_object: bool = False,
                  backbone_weights_path: str | None = None, wh_weight: float = 0.1, offset_weight: float = 1.0,
-                 min_overlap: float = 0.7, dense_regression: bool = False) -> None:
+                 min_overlap: float = 0.7, dense_regression: bool = False, giou_weight: float = 0.0) -> None:
         super().__init__(obj_ids, input_size, score_threshold, max_detections, one_per_object)
         import timm
 
@@ -191,6 +204,7 @@ class CenterNet(Detector):
         self.offset_head = _head(neck_channels, 2, head_channels)
         self.wh_weight, self.offset_weight, self.min_overlap = float(wh_weight), float(offset_weight), float(min_overlap)
         self.dense_regression = bool(dense_regression)
+        self.giou_weight = float(giou_weight)
         self.register_buffer("mean", torch.tensor(_MEAN).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(_STD).view(1, 3, 1, 1), persistent=False)
         self._pad = max(reductions)
@@ -231,6 +245,11 @@ class CenterNet(Detector):
         l_wh = (tg.weight[:, None] * (wh_p - tg.wh).abs()).sum() / n
         l_off = (tg.weight[:, None] * (off_p - tg.offset).abs()).sum() / n
         total = l_heat + self.wh_weight * l_wh + self.offset_weight * l_off
-        return {"loss": total, "loss_heatmap": l_heat, "loss_wh": l_wh, "loss_offset": l_off}
+        losses = {"loss_heatmap": l_heat, "loss_wh": l_wh, "loss_offset": l_off}
+        if self.giou_weight > 0:
+            l_giou = (tg.weight * giou_loss(off_p, wh_p, tg.offset, tg.wh)).sum() / n
+            total = total + self.giou_weight * l_giou
+            losses["loss_giou"] = l_giou
+        return {"loss": total, **losses}
 
 

@@ -1,7 +1,8 @@
 """``kpd6d-benchmark detector``: detector latency and accuracy.
 
 Latency (default): per-image time of ``detector.predict`` on 640x480 images, batch 1 and batched,
-for each detector (untrained weights: timing only), on CPU and on CUDA when available.
+for each detector config (``conf/detector/<name>.yaml``, built as configured; untrained weights:
+timing only), on CPU and on CUDA when available.
 
 Accuracy (``--checkpoint PATH --data ROOT [--split test]``): AP@0.5 and AP@0.5:0.95 of a trained
 detector (``detector.pt`` from ``kpd6d-train stage=detector``) on a BOP split.
@@ -14,12 +15,31 @@ import json
 import time
 
 
-def _latency(name: str, device: str, batch: int, iters: int, width: int, height: int, input_size) -> float:
+def detector_config(choice: str) -> dict:
+    """The parameters of config choice ``conf/detector/<choice>.yaml`` (``name`` = registry name)."""
+    from omegaconf import OmegaConf
+
+    from kpd6d.paths import config_dir
+
+    path = config_dir() / "detector" / f"{choice}.yaml"
+    if not path.is_file():
+        known = sorted(q.stem for q in path.parent.glob("*.yaml"))
+        raise ValueError(f"unknown detector config {choice!r} (no {path}); known: {', '.join(known)}")
+    return OmegaConf.to_container(OmegaConf.load(path), resolve=True)
+
+
+def _latency(choice: str, device: str, batch: int, iters: int, width: int, height: int,
+             input_size) -> tuple[float, str]:
+    """Seconds per image of ``predict`` and the network input size used."""
     import torch
 
     from kpd6d.detection import build_detector
 
-    params = {} if name == "oracle" else {"obj_ids": [1, 2, 3, 4, 5, 6], "input_size": input_size}
+    params = detector_config(choice)
+    name = params.pop("name")
+    params["obj_ids"] = [1, 2, 3, 4, 5, 6]
+    if input_size is not None and "input_size" in params:
+        params["input_size"] = input_size
     det = build_detector(name, **params).to(device).eval()
     images = torch.rand(batch, 3, height, width, device=device)
     targets = [{"boxes": torch.tensor([[100.0, 100, 80, 60]] * 6), "obj_ids": torch.arange(1, 7)}] * batch
@@ -31,18 +51,21 @@ def _latency(name: str, device: str, batch: int, iters: int, width: int, height:
     for _ in range(iters):
         det.predict(images, targets if name == "oracle" else None)
     sync()
-    return (time.perf_counter() - t0) / (iters * batch)
+    seconds = (time.perf_counter() - t0) / (iters * batch)
+    return seconds, "x".join(str(v) for v in det.input_size) if det.input_size else "full"
 
 
 def main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="kpd6d-benchmark detector", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--detectors", default="centernet,fcos,faster_rcnn,oracle")
+    p.add_argument("--detectors", default="centernet,centernet_tiny,fcos,faster_rcnn,oracle",
+                   help="comma list of detector configs (conf/detector/<name>.yaml), built as configured")
     p.add_argument("--batch-sizes", default="1,8")
     p.add_argument("--iters", type=int, default=5)
     p.add_argument("--devices", default="auto", help="comma list (cpu, cuda); auto: cpu and cuda if available")
     p.add_argument("--size", default="640x480", help="image size WxH")
-    p.add_argument("--input-size", default="320x240", help="network input WxH (images are resized to it)")
+    p.add_argument("--input-size", default="config",
+                   help="network input WxH (images are resized to it); config: each detector's configured size")
     p.add_argument("--threads", type=int, default=0, help="torch CPU threads (0: torch's default)")
     p.add_argument("--checkpoint", help="accuracy mode: a trained detector (detector.pt)")
     p.add_argument("--data", help="accuracy mode: BOP dataset root")
@@ -73,19 +96,25 @@ def main(argv: list[str]) -> int:
         rows = [res]
     else:
         W, H = (int(v) for v in a.size.lower().split("x"))
-        insz = [int(v) for v in a.input_size.lower().split("x")] if a.input_size not in ("", "none") else None
+        insz = [int(v) for v in a.input_size.lower().split("x")] if a.input_size not in ("", "none", "config") else None
         devices = (["cpu"] + (["cuda"] if torch.cuda.is_available() else [])) if a.devices == "auto" \
             else a.devices.split(",")
+        choices = a.detectors.split(",")
+        for name in choices:
+            try:
+                detector_config(name)
+            except ValueError as e:
+                p.error(str(e))
         rows = []
-        print(f"detector latency per image, {W}x{H} images, network input {a.input_size}, "
-              f"torch threads {torch.get_num_threads()}")
-        print(f"{'detector':<12} {'device':<6} {'batch':>5} {'ms/image':>10}")
+        print(f"detector latency per image, {W}x{H} images, torch threads {torch.get_num_threads()}")
+        print(f"{'detector':<15} {'input':<8} {'device':<6} {'batch':>5} {'ms/image':>10}")
         for dev in devices:
-            for name in a.detectors.split(","):
+            for name in choices:
                 for b in (int(x) for x in a.batch_sizes.split(",")):
-                    s = _latency(name, dev, b, a.iters, W, H, insz)
-                    rows.append({"detector": name, "device": dev, "batch": b, "ms_per_image": round(s * 1e3, 2)})
-                    print(f"{name:<12} {dev:<6} {b:>5} {s * 1e3:>10.2f}", flush=True)
+                    s, used = _latency(name, dev, b, a.iters, W, H, insz)
+                    rows.append({"detector": name, "input": used, "device": dev, "batch": b,
+                                 "ms_per_image": round(s * 1e3, 2)})
+                    print(f"{name:<15} {used:<8} {dev:<6} {b:>5} {s * 1e3:>10.2f}", flush=True)
     if a.json:
         with open(a.json, "w") as f:
             json.dump(rows, f, indent=2)

@@ -40,6 +40,28 @@ def test_group_names_registry_entries_one_to_one(group):
             assert OmegaConf.load(f).name == f.stem, f"{f} is named after entry {f.stem!r} but configures another"
 
 
+@pytest.mark.parametrize("group", GROUPS)
+def test_entry_configs_state_the_entry_defaults(group):
+    """conf/<group>/<entry>.yaml names only parameters of <entry> and gives each the value the code
+    defaults to, so `build(name)` in a notebook and `group=<entry>` in Hydra build the same thing
+    (variants such as centernet_tiny.yaml are files named otherwise)."""
+    import inspect
+
+    from kpd6d.config import to_plain
+
+    registry = REGISTRIES[group]
+    for entry in registry.names():
+        cfg = OmegaConf.to_container(OmegaConf.load(CONF / group / f"{entry}.yaml"))
+        cfg.pop("name")
+        params = inspect.signature(registry.get(entry)).parameters
+        takes_any = any(p.kind is inspect.Parameter.VAR_KEYWORD for p in params.values())
+        unknown = set(cfg) - set(params)
+        assert takes_any or not unknown, f"conf/{group}/{entry}.yaml: {sorted(unknown)} are not parameters of {entry}"
+        differ = {k: (v, to_plain(params[k].default)) for k, v in cfg.items()
+                  if k in params and params[k].default is not inspect.Parameter.empty and to_plain(params[k].default) != v}
+        assert not differ, f"conf/{group}/{entry}.yaml differs from the code's defaults (yaml, code): {differ}"
+
+
 @pytest.mark.parametrize("group", sorted(CHEAP_TO_BUILD))
 def test_group_configs_build_through_registry(group):
     for f in _group_files(group):

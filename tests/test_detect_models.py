@@ -225,13 +225,14 @@ def test_centernet_giou_term_trains_the_size_head():
     losses = net.training_losses(images, targets)
     expect = (losses["loss_heatmap"] + net.wh_weight * losses["loss_wh"] + net.offset_weight * losses["loss_offset"]
               + 2.0 * losses["loss_giou"])
-    assert float(losses["loss"]) == pytest.approx(float(expect), rel=1e-6)
-    assert 0.0 < float(losses["loss_giou"]) <= 2.0
+    assert float(losses["loss"].detach()) == pytest.approx(float(expect.detach()), rel=1e-6)
+    assert 0.0 < float(losses["loss_giou"].detach()) <= 2.0
     net.zero_grad()
     losses["loss_giou"].backward()
     assert net.wh_head[-1].weight.grad.abs().sum() > 0 and net.offset_head[-1].weight.grad.abs().sum() > 0
     assert net.heat_head[-1].weight.grad is None or net.heat_head[-1].weight.grad.abs().sum() == 0
-    assert "loss_giou" not in CenterNet(obj_ids=[1], input_size=None).training_losses(images, [targets[1]] * 2)
+    no_giou = CenterNet(obj_ids=[1], input_size=None, giou_weight=0.0)
+    assert "loss_giou" not in no_giou.training_losses(images, [targets[1]] * 2)
 
 
 def test_focal_loss_matches_a_direct_formula():
@@ -340,6 +341,30 @@ def test_checkpoint_round_trip_and_wrong_objects(tmp_path):
         load_detector(tmp_path / "other.pt")
     with pytest.raises(FileNotFoundError, match=r"missing\.pt"):
         load_detector(tmp_path / "missing.pt")
+
+
+def test_checkpoint_records_every_constructor_parameter(tmp_path, monkeypatch):
+    import inspect
+
+    det = build_from_cfg(DETECTORS, {"name": "centernet", "obj_ids": OBJ_IDS, "backbone": "resnet10t",
+                                     "input_size": [64, 48]})
+    params = det.spec()["params"]
+    signature = inspect.signature(CenterNet)
+    assert set(params) == set(signature.parameters)
+    assert params["neck_channels"] == signature.parameters["neck_channels"].default  # a default, recorded
+    assert params["backbone"] == "resnet10t" and params["input_size"] == [64, 48]
+    path = save_detector(det, tmp_path / "det.pt")
+    # a later change of the class's defaults does not change what the checkpoint rebuilds
+    names = [n for n in inspect.signature(CenterNet.__init__).parameters if n != "self"]
+    defaults = list(CenterNet.__init__.__defaults__)
+    assert len(defaults) == len(names)
+    for n in ("neck_channels", "head_channels"):
+        defaults[names.index(n)] = 16
+    monkeypatch.setattr(CenterNet.__init__, "__defaults__", tuple(defaults))
+    assert build_detector("centernet", obj_ids=OBJ_IDS, input_size=None).lateral[0].out_channels == 16
+    assert build_detector("centernet", obj_ids=OBJ_IDS, input_size=None).spec()["params"]["neck_channels"] == 16
+    loaded = load_detector(path)
+    assert loaded.lateral[0].out_channels == params["neck_channels"] == det.lateral[0].out_channels != 16
 
 
 def test_torchvision_checkpoint_round_trip(tmp_path):

@@ -170,13 +170,17 @@ def _head(cin: int, cout: int, mid: int, bias: float = 0.0) -> nn.Sequential:
 class CenterNet(Detector):
     """CenterNet on a timm backbone. ``backbone``: any timm model with ``features_only`` support
     (``resnet18`` default; ``resnet10t`` / ``mobilenetv3_small_100`` are lighter). Never downloads:
-    weights are random unless ``backbone_weights_path`` names a local timm state dict."""
+    weights are random unless ``backbone_weights_path`` names a local timm state dict.
+
+    The defaults are ``conf/detector/centernet.yaml``'s (tuned for CPU budgets: 32-channel neck and
+    heads, TTFNet-style dense size/offset regression, a GIoU term). The original CenterNet's
+    regression is ``dense_regression=False, giou_weight=0``."""
 
     def __init__(self, obj_ids: Sequence[int] | None = None, backbone: str = "resnet18",
-                 neck_channels: int = 64, head_channels: int = 64, input_size: Sequence[int] | None = (320, 240),
+                 neck_channels: int = 32, head_channels: int = 32, input_size: Sequence[int] | None = (320, 240),
                  score_threshold: float = 0.1, max_detections: int = 100, one_per_object: bool = False,
                  backbone_weights_path: str | None = None, wh_weight: float = 0.1, offset_weight: float = 1.0,
-                 min_overlap: float = 0.7, dense_regression: bool = False, giou_weight: float = 0.0) -> None:
+                 min_overlap: float = 0.7, dense_regression: bool = True, giou_weight: float = 2.0) -> None:
         super().__init__(obj_ids, input_size, score_threshold, max_detections, one_per_object)
         import timm
 

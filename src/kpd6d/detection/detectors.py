@@ -9,6 +9,7 @@ detector from it, or from a ``DetectorModule`` Lightning checkpoint, without any
 from __future__ import annotations
 
 import functools
+import inspect
 import os
 import tempfile
 from collections.abc import Sequence
@@ -31,12 +32,16 @@ FORMAT_VERSION = 1
 
 
 def _register(name: str, factory):
-    """Register ``factory`` under ``name``; the built detector remembers (name, params) for saving."""
+    """Register ``factory`` under ``name``; the built detector remembers (name, params) for saving,
+    every constructor parameter included (defaults resolved), so a checkpoint rebuilds the same
+    detector even after a default changes."""
 
     @functools.wraps(factory)
     def build(**params: Any) -> Detector:
         det = factory(**params)
-        det._spec = {"name": name, "params": to_plain(params)}
+        bound = inspect.signature(factory).bind(**params)
+        bound.apply_defaults()
+        det._spec = {"name": name, "params": to_plain(dict(bound.arguments))}
         return det
 
     DETECTORS.add(name, build)

@@ -28,14 +28,14 @@ def detector_config(choice: str) -> dict:
     return OmegaConf.to_container(OmegaConf.load(path), resolve=True)
 
 
-def _latency(choice: str, device: str, batch: int, iters: int, width: int, height: int,
+def _latency(config: dict, device: str, batch: int, iters: int, width: int, height: int,
              input_size) -> tuple[float, str]:
-    """Seconds per image of ``predict`` and the network input size used."""
+    """Seconds per image of ``predict`` of the detector ``config`` describes, and the input size used."""
     import torch
 
     from kpd6d.detection import build_detector
 
-    params = detector_config(choice)
+    params = dict(config)
     name = params.pop("name")
     params["obj_ids"] = [1, 2, 3, 4, 5, 6]
     if input_size is not None and "input_size" in params:
@@ -99,19 +99,17 @@ def main(argv: list[str]) -> int:
         insz = [int(v) for v in a.input_size.lower().split("x")] if a.input_size not in ("", "none", "config") else None
         devices = (["cpu"] + (["cuda"] if torch.cuda.is_available() else [])) if a.devices == "auto" \
             else a.devices.split(",")
-        choices = a.detectors.split(",")
-        for name in choices:
-            try:
-                detector_config(name)
-            except ValueError as e:
-                p.error(str(e))
+        try:
+            configs = {name: detector_config(name) for name in a.detectors.split(",")}
+        except ValueError as e:
+            p.error(str(e))
         rows = []
         print(f"detector latency per image, {W}x{H} images, torch threads {torch.get_num_threads()}")
         print(f"{'detector':<15} {'input':<8} {'device':<6} {'batch':>5} {'ms/image':>10}")
         for dev in devices:
-            for name in choices:
+            for name, config in configs.items():
                 for b in (int(x) for x in a.batch_sizes.split(",")):
-                    s, used = _latency(name, dev, b, a.iters, W, H, insz)
+                    s, used = _latency(config, dev, b, a.iters, W, H, insz)
                     rows.append({"detector": name, "input": used, "device": dev, "batch": b,
                                  "ms_per_image": round(s * 1e3, 2)})
                     print(f"{name:<15} {used:<8} {dev:<6} {b:>5} {s * 1e3:>10.2f}", flush=True)

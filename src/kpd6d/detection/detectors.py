@@ -154,7 +154,9 @@ def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None,
     except RuntimeError as exc:
         raise DetectionInputError(f"weights in {str(path)!r} do not fit a {rec['name']} detector built from its "
                                   f"recorded parameters: {exc}") from exc
-    det._spec = {"name": rec["name"], "params": to_plain(dict(rec["params"], **overrides))}
+    # the rebuilt spec (defaults resolved) with the record's weight paths, which were not rebuilt
+    det._spec["params"].update(to_plain({k: rec["params"][k] for k in ("backbone_weights_path", "weights_path")
+                                         if k in rec["params"]}))
     det.box_stats = rec.get("box_stats")
     det.to(map_location if isinstance(map_location, (str, torch.device)) else "cpu")
     return det.eval()

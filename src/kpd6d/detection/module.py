@@ -32,9 +32,12 @@ class DetectorModule(pl.LightningModule):
     def __init__(self, detector: Mapping[str, Any], optimizer: Mapping[str, Any] | None = None,
                  augment: Mapping[str, Any] | None = None, eval_score_threshold: float = 0.01,
                  box_stats_iou: float = 0.5, stats_path: str | None = None, seed: int = 0,
-                 channels_last: bool = True) -> None:
+                 channels_last: bool = True, finetune: Mapping[str, Any] | None = None) -> None:
         super().__init__()
         self.save_hyperparameters()
+        from kpd6d.finetune import finetune_config
+
+        self.finetune = finetune_config(finetune, "stage.finetune")
         self.detector = build_from_cfg(DETECTORS, dict(detector))
         if not self.detector.trainable:
             raise ValueError(f"detector {detector.get('name')!r} is not trainable; known trainable detectors: "
@@ -54,6 +57,21 @@ class DetectorModule(pl.LightningModule):
         self.channels_last = bool(channels_last)
         if self.channels_last:  # NHWC convolutions: markedly faster on CPU (oneDNN), neutral elsewhere
             self.detector.to(memory_format=torch.channels_last)
+        if (self.finetune["backbone_lr_mult"] != 1.0 or self.finetune["freeze_bn"]) and self._backbone() is None:
+            raise ValueError(f"stage.finetune: detector {detector.get('name')!r} exposes no .backbone module, so "
+                             "backbone_lr_mult / freeze_bn cannot apply to it")
+
+    def _backbone(self):
+        bb = getattr(self.detector, "backbone", None)
+        return bb if isinstance(bb, torch.nn.Module) else None
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        if mode and self.finetune["freeze_bn"]:
+            from kpd6d.finetune import apply_freeze_bn
+
+            apply_freeze_bn(self._backbone())  # keep the pretrained BatchNorm statistics
+        return self
 
     # -- training -----------------------------------------------------------------------------
     def training_step(self, batch, batch_idx):
@@ -105,6 +123,10 @@ class DetectorModule(pl.LightningModule):
     def configure_optimizers(self):
         c = self.opt_cfg
         params = [p for p in self.parameters() if p.requires_grad]
+        if self._backbone() is not None and self.finetune["backbone_lr_mult"] != 1.0:
+            from kpd6d.finetune import param_groups
+
+            params = param_groups(self, self._backbone(), c["lr"], self.finetune["backbone_lr_mult"])
         if c["name"] == "sgd":
             opt = torch.optim.SGD(params, lr=c["lr"], momentum=c["momentum"], weight_decay=c["weight_decay"])
         elif c["name"] in ("adam", "adamw"):

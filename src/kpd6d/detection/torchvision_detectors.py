@@ -36,13 +36,14 @@ class TimmFPN(nn.Module):
     ``OrderedDict`` of feature maps with ``out_channels`` channels each, as torchvision expects."""
 
     def __init__(self, name: str, out_indices: Sequence[int], out_channels: int = 256, extra_blocks=None,
-                 weights_path: str | None = None) -> None:
+                 weights_path: str | None = None, pretrained: str | None = None) -> None:
         super().__init__()
-        import timm
         from torchvision.ops.feature_pyramid_network import FeaturePyramidNetwork
 
+        from kpd6d.pretrained import create_timm_model
+
         try:
-            self.body = timm.create_model(name, pretrained=False, features_only=True, out_indices=tuple(out_indices))
+            self.body = create_timm_model(name, pretrained=pretrained, features_only=True, out_indices=tuple(out_indices))
         except (RuntimeError, IndexError) as exc:
             raise DetectionInputError(f"cannot build timm backbone {name!r} with out_indices "
                                       f"{tuple(out_indices)}: {exc}") from exc
@@ -56,9 +57,11 @@ class TimmFPN(nn.Module):
         return self.fpn(OrderedDict((str(i), f) for i, f in enumerate(feats)))
 
 
-def build_fpn_backbone(backbone: str, levels: str, weights_path: str | None = None) -> nn.Module:
+def build_fpn_backbone(backbone: str, levels: str, weights_path: str | None = None,
+                       pretrained: str | None = None) -> nn.Module:
     """FPN backbone. ``levels='rcnn'``: strides 4..32 + max-pool P6 (Faster R-CNN's layout);
-    ``levels='fcos'``: strides 8..32 + P6, P7 (FCOS's layout)."""
+    ``levels='fcos'``: strides 8..32 + P6, P7 (FCOS's layout). ``pretrained="imagenet"``: the packaged
+    ImageNet weights of a ``timm:`` backbone that has them (``timm:efficientnet_lite0``)."""
     from torchvision.ops.feature_pyramid_network import LastLevelMaxPool, LastLevelP6P7
 
     if levels == "rcnn":
@@ -66,7 +69,11 @@ def build_fpn_backbone(backbone: str, levels: str, weights_path: str | None = No
     else:
         returned, extra = [2, 3, 4], LastLevelP6P7(256, 256)
     if backbone.startswith("timm:"):
-        return TimmFPN(backbone[5:], out_indices=returned, extra_blocks=extra, weights_path=weights_path)
+        return TimmFPN(backbone[5:], out_indices=returned, extra_blocks=extra, weights_path=weights_path,
+                       pretrained=pretrained)
+    if pretrained:
+        raise DetectionInputError(f"backbone_pretrained={pretrained!r} needs a timm backbone with packaged weights "
+                                  f"(e.g. timm:efficientnet_lite0), not {backbone!r}")
     if backbone not in TORCHVISION_BACKBONES:
         raise DetectionInputError(f"unknown backbone {backbone!r}; known: {', '.join(TORCHVISION_BACKBONES)} "
                                   "or timm:<timm model name>")
@@ -85,22 +92,31 @@ class TorchvisionDetector(Detector):
     def __init__(self, kind: str, obj_ids: Sequence[int] | None = None, backbone: str = "resnet18",
                  input_size: Sequence[int] | None = (320, 240), score_threshold: float = 0.1,
                  max_detections: int = 100, one_per_object: bool = False, backbone_weights_path: str | None = None,
-                 weights_path: str | None = None, nms_threshold: float = 0.5) -> None:
+                 weights_path: str | None = None, nms_threshold: float = 0.5, backbone_pretrained: str | None = None,
+                 mean: Sequence[float] | None = None, std: Sequence[float] | None = None) -> None:
         super().__init__(obj_ids, input_size, score_threshold, max_detections, one_per_object)
+        from kpd6d.pretrained import IMAGENET, backbone_normalization
+
         w, h = self.input_size or (640, 480)
-        common = dict(num_classes=self.num_classes + 1, min_size=min(w, h), max_size=max(w, h))
+        # the normalisation the backbone's weights expect (torchvision's transform applies it)
+        dm, ds = backbone_normalization(backbone[5:]) if backbone.startswith("timm:") else IMAGENET
+        mean = [float(v) for v in (mean if mean is not None else dm)]
+        std = [float(v) for v in (std if std is not None else ds)]
+        self.resolved_params = {"mean": mean, "std": std}
+        common = dict(num_classes=self.num_classes + 1, min_size=min(w, h), max_size=max(w, h), image_mean=mean,
+                      image_std=std)
         if kind == "fcos":
             from torchvision.models.detection import FCOS
             from torchvision.models.detection.anchor_utils import AnchorGenerator
 
             anchors = AnchorGenerator(sizes=((8,), (16,), (32,), (64,), (128,)), aspect_ratios=((1.0,),) * 5)
-            self.model = FCOS(build_fpn_backbone(backbone, "fcos", backbone_weights_path), anchor_generator=anchors,
+            self.model = FCOS(build_fpn_backbone(backbone, "fcos", backbone_weights_path, backbone_pretrained), anchor_generator=anchors,
                               score_thresh=0.05, nms_thresh=nms_threshold, detections_per_img=max(self.max_detections, 100),
                               **common)
         elif kind == "faster_rcnn":
             from torchvision.models.detection import FasterRCNN
 
-            self.model = FasterRCNN(build_fpn_backbone(backbone, "rcnn", backbone_weights_path),
+            self.model = FasterRCNN(build_fpn_backbone(backbone, "rcnn", backbone_weights_path, backbone_pretrained),
                                     box_score_thresh=0.05, box_nms_thresh=nms_threshold,
                                     box_detections_per_img=max(self.max_detections, 100), **common)
         else:

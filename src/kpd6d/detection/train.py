@@ -100,7 +100,7 @@ def train_detector(cfg: Any) -> Path:
     module = DetectorModule(det_cfg, optimizer=optimizer, augment=st.get("augment"),
                             eval_score_threshold=float(st.get("eval_score_threshold", 0.01)),
                             box_stats_iou=float(st.get("box_stats_iou", 0.5)), stats_path=str(stats_path), seed=seed,
-                            channels_last=bool(st.get("channels_last", True)))
+                            channels_last=bool(st.get("channels_last", True)), finetune=st.get("finetune"))
     bs, workers = int(st.get("batch_size", 8)), int(st.get("num_workers", 0))
     train_dl = DataLoader(train_ds, batch_size=bs, shuffle=True, num_workers=workers, collate_fn=collate_detection,
                           drop_last=len(train_ds) > bs, persistent_workers=workers > 0)

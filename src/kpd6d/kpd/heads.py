@@ -5,7 +5,7 @@
 * ``fpn`` — FPN-style top-down path: 1×1 laterals on the features from the output stride to 32,
   nearest-upsample-and-add, a 3×3 conv, then a 1×1 conv to the heatmaps.
 
-:class:`KeypointNet` normalises [0, 1] images with the ImageNet mean/std itself, and outputs
+:class:`KeypointNet` normalises [0, 1] images with its backbone's mean/std itself, and outputs
 ``num_groups × num_keypoints`` maps: one heatmap group per object when one network serves several
 objects; :meth:`KeypointNet.select` picks each sample's group by its object index.
 """
@@ -19,11 +19,9 @@ from typing import Any
 import torch
 from torch import nn
 
+from kpd6d.pretrained import IMAGENET
+
 __all__ = ["HEADS", "DeconvHead", "FPNHead", "KeypointNet"]
-
-_MEAN = (0.485, 0.456, 0.406)
-_STD = (0.229, 0.224, 0.225)
-
 
 def _n_upsamplings(reduction: int, out_stride: int) -> int:
     n = math.log2(reduction / out_stride)
@@ -104,8 +102,9 @@ class KeypointNet(nn.Module):
             raise ValueError(f"unknown head {kind!r}; known heads: {', '.join(sorted(HEADS))}")
         self.head = HEADS[kind](self.backbone.channels, self.backbone.reductions,
                                 self.num_groups * self.num_keypoints, out_stride=self.out_stride, **head)
-        self.register_buffer("mean", torch.tensor(_MEAN).view(1, 3, 1, 1), persistent=False)
-        self.register_buffer("std", torch.tensor(_STD).view(1, 3, 1, 1), persistent=False)
+        # the normalisation the backbone's weights expect (each backbone states it)
+        self.register_buffer("mean", torch.tensor(getattr(self.backbone, "mean", IMAGENET[0])).view(1, 3, 1, 1), persistent=False)
+        self.register_buffer("std", torch.tensor(getattr(self.backbone, "std", IMAGENET[1])).view(1, 3, 1, 1), persistent=False)
 
     def forward(self, images: torch.Tensor) -> torch.Tensor:
         x = (images - self.mean.to(images.dtype)) / self.std.to(images.dtype)

@@ -20,6 +20,7 @@ import pytorch_lightning as pl
 import torch
 
 from kpd6d.config import to_plain
+from kpd6d.finetune import apply_freeze_bn, finetune_config, param_groups
 from kpd6d.geometry import affine_apply, box_to_crop_affine, invert_affine
 from kpd6d.kpd.heads import KeypointNet
 from kpd6d.kpd.heatmaps import crop_to_heatmap, gaussian_heatmaps, heatmap_to_crop
@@ -44,7 +45,7 @@ class KPDModule(pl.LightningModule):
                  input_size: int = 256, out_stride: int = 4, sigma: float = 2.0, crop_scale: float = 1.25,
                  decoder: Mapping | None = None, loss: Mapping | None = None, optimizer: Mapping | None = None,
                  scheduler: Mapping | None = None, augment: Mapping | None = None, top_l: int | None = None,
-                 pnp: Mapping | None = None, channels_last: bool = True) -> None:
+                 pnp: Mapping | None = None, channels_last: bool = True, finetune: Mapping | None = None) -> None:
         super().__init__()
         obj_ids = [int(o) for o in obj_ids]
         n = len(obj_ids)
@@ -73,11 +74,15 @@ class KPDModule(pl.LightningModule):
             "loss": to_plain(loss) or {}, "optimizer": to_plain(optimizer) or {"name": "adam", "lr": 1e-3},
             "scheduler": to_plain(scheduler), "augment": to_plain(augment), "top_l": top_l,
             "pnp": to_plain(pnp) or {"name": "epnp"}, "channels_last": bool(channels_last),
+            "finetune": finetune_config(to_plain(finetune), "KPDModule finetune"),
         })
         hp = self.hparams
         self.num_keypoints = kps[0].shape[0]
         self.net = KeypointNet(hp.backbone, hp.head, self.num_keypoints,
                                num_groups=n if grouping == "per_object" else 1, out_stride=hp.out_stride)
+        # the checkpoint records the backbone's input normalisation, so it predicts the same even if a
+        # default changes (and never needs the pretrained weights again: see load_checkpoint)
+        hp.backbone = {**hp.backbone, "mean": self.net.mean.flatten().tolist(), "std": self.net.std.flatten().tolist()}
         if hp.channels_last:  # NHWC convolutions: markedly faster on CPU (oneDNN), neutral elsewhere
             self.net.to(memory_format=torch.channels_last)
         from kpd6d.registry import DECODERS, build_from_cfg
@@ -142,7 +147,13 @@ class KPDModule(pl.LightningModule):
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"KPD checkpoint {str(p)!r} does not exist")
-        module = cls.load_from_checkpoint(str(p), map_location=map_location, weights_only=False)
+        ckpt = torch.load(str(p), map_location="cpu", weights_only=False)
+        hparams = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+        extra = {}
+        if isinstance(hparams, Mapping) and isinstance(hparams.get("backbone"), Mapping):
+            # the weights are in the checkpoint: never consult a pretrained file or package again
+            extra["backbone"] = {**dict(hparams["backbone"]), "pretrained": None}
+        module = cls.load_from_checkpoint(str(p), map_location=map_location, weights_only=False, **extra)
         return module.eval()
 
     def obj_indices(self, obj_ids) -> torch.Tensor:
@@ -248,7 +259,9 @@ class KPDModule(pl.LightningModule):
                       "rmsprop": torch.optim.RMSprop}
         if name not in optimizers:
             raise ValueError(f"unknown optimizer {name!r}; known: {', '.join(sorted(optimizers))}")
-        opt = optimizers[name](self.parameters(), **ocfg)
+        ft = self.hparams.finetune or finetune_config(None)
+        lr = ocfg.pop("lr", 1e-3)
+        opt = optimizers[name](param_groups(self, self.net.backbone, lr, ft["backbone_lr_mult"]), lr=lr, **ocfg)
         if not self.hparams.scheduler:
             return opt
         scfg = dict(self.hparams.scheduler)
@@ -282,6 +295,12 @@ class KPDModule(pl.LightningModule):
             scfg["total_steps"] = int(self.trainer.estimated_stepping_batches)
             interval = "step"
         return {"optimizer": opt, "lr_scheduler": {"scheduler": schedulers[sname](opt, **scfg), "interval": interval}}
+
+    def train(self, mode: bool = True):
+        super().train(mode)
+        if mode and (self.hparams.get("finetune") or {}).get("freeze_bn"):
+            apply_freeze_bn(self.net.backbone)  # keep the pretrained BatchNorm statistics
+        return self
 
     # -- inference -------------------------------------------------------------------------------
     @torch.no_grad()

@@ -112,6 +112,7 @@ def train_kpd(cfg) -> Path:
         crop_scale=float(k.crop_scale), decoder=to_plain(cfg.stage.decoder), loss=to_plain(k.loss),
         optimizer=to_plain(k.optimizer), scheduler=scheduler, augment=to_plain(k.augment),
         top_l=k.top_l, pnp=to_plain(k.pnp), channels_last=bool(k.get("channels_last", True)),
+        finetune=to_plain(k.get("finetune")),
     )
     nw = int(k.num_workers)
     loader_kw = dict(batch_size=int(k.batch_size), num_workers=nw, persistent_workers=nw > 0, pin_memory=False)

@@ -2,7 +2,8 @@
 
 ``generate_dataset(out_dir, models_dir=None, ...)`` is the entry point (CLI: ``kpd6d-generate``);
 :mod:`~kpd6d.synth.poses` samples poses, :mod:`~kpd6d.synth.backgrounds` makes backgrounds,
-:mod:`~kpd6d.synth.distractors` makes occluders, :mod:`~kpd6d.synth.scene` composes one image,
+:mod:`~kpd6d.synth.distractors` makes occluders, :mod:`~kpd6d.synth.scene` composes one image
+(:mod:`~kpd6d.synth.tabletop`: the table, camera and resting poses of ``layout: tabletop``),
 :mod:`~kpd6d.synth.photometric` applies blur / noise / colour shifts. BOP files are written through
 :mod:`kpd6d.data`.
 """

@@ -14,7 +14,13 @@ from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K
 from kpd6d.synth.photometric import PhotometricConfig
 from kpd6d.synth.poses import ViewRanges
 
-__all__ = ["SynthConfig", "default_K"]
+__all__ = ["LAYOUTS", "SynthConfig", "default_K"]
+
+LAYOUTS = ("free", "tabletop")
+#: options of the table-top layout; with ``layout: free`` they are left out of ``to_dict`` while at
+#: their defaults, so that free-layout runs record (and resume with) the same settings as before
+_TABLETOP_FIELDS = ("layout", "table_elevation_range", "table_roll_range", "table_size_range",
+                    "table_cluster_radius", "table_distractor_rest_prob")
 
 
 def default_K(width: int, height: int) -> np.ndarray:
@@ -60,6 +66,14 @@ class SynthConfig:
     inplane_range: tuple[float, float] = (-45.0, 45.0)
     view_margin: float = 0.1  # fraction of the object's box allowed outside the image
     canonicalize_symmetric: bool = True
+    # scene layout: "free" (each object posed on its own, floating over the background) or "tabletop"
+    # (objects resting on a textured table plane seen from above); the table_* options apply to tabletop
+    layout: str = "free"
+    table_elevation_range: tuple[float, float] = (15.0, 75.0)  # degrees, camera above the table plane
+    table_roll_range: tuple[float, float] = (-15.0, 15.0)  # degrees, camera roll about its optical axis
+    table_size_range: tuple[float, float] = (800.0, 2000.0)  # mm, side lengths of the table top
+    table_cluster_radius: float = 0.15  # objects within this fraction of the camera distance of the look-at point
+    table_distractor_rest_prob: float = 0.5  # chance that a distractor rests on the table (else it floats)
     # appearance
     lighting: str = "random"  # "random" (Lighting.random per image) or "fixed"
     specular_prob: float = 0.3
@@ -125,6 +139,7 @@ class SynthConfig:
         for name in ("distance_range", "elevation_range", "azimuth_range", "inplane_range"):
             setattr(self, name, _pair(name, getattr(self, name)))
         self.view_ranges()  # validates the angle / distance ranges
+        self._validate_layout()
         if self.lighting not in ("random", "fixed"):
             raise ValueError(f"lighting must be 'random' or 'fixed', got {self.lighting!r}")
         if self.rgb_format not in ("png", "jpg"):
@@ -146,6 +161,31 @@ class SynthConfig:
         if self.backgrounds_dir is not None:
             self.backgrounds_dir = str(self.backgrounds_dir)
 
+    def _validate_layout(self) -> None:
+        if self.layout not in LAYOUTS:
+            raise ValueError(f"layout must be one of {', '.join(map(repr, LAYOUTS))}, got {self.layout!r}")
+        lo, hi = self.table_elevation_range = _pair("table_elevation_range", self.table_elevation_range)
+        if not (0.0 < lo and hi <= 90.0):
+            raise ValueError(f"table_elevation_range must lie in (0, 90] degrees (camera above the table), "
+                             f"got {list(self.table_elevation_range)}")
+        lo, hi = self.table_roll_range = _pair("table_roll_range", self.table_roll_range)
+        if not (-180.0 <= lo and hi <= 180.0):
+            raise ValueError(f"table_roll_range must lie in [-180, 180] degrees, got {list(self.table_roll_range)}")
+        lo, hi = self.table_size_range = _pair("table_size_range", self.table_size_range)
+        if lo <= 0:
+            raise ValueError(f"table_size_range must be positive (mm), got {list(self.table_size_range)}")
+        for name in ("table_cluster_radius", "table_distractor_rest_prob"):
+            try:
+                v = float(getattr(self, name))
+            except (TypeError, ValueError):
+                raise ValueError(f"{name} must be a number, got {getattr(self, name)!r}") from None
+            setattr(self, name, v)
+        if not (math.isfinite(self.table_cluster_radius) and self.table_cluster_radius > 0):
+            raise ValueError(f"table_cluster_radius must be > 0 (a fraction of the camera distance), "
+                             f"got {self.table_cluster_radius!r}")
+        if not (0.0 <= self.table_distractor_rest_prob <= 1.0):
+            raise ValueError(f"table_distractor_rest_prob must lie in [0, 1], got {self.table_distractor_rest_prob!r}")
+
     # -- derived ---------------------------------------------------------------------------------
     def camera_K(self) -> np.ndarray:
         return np.asarray(self.K, dtype=np.float64).reshape(3, 3) if self.K is not None else default_K(self.width, self.height)
@@ -157,5 +197,13 @@ class SynthConfig:
         return PhotometricConfig.from_mapping(self.photometric)
 
     def to_dict(self) -> dict:
-        d = asdict(self)
-        return {k: list(v) if isinstance(v, tuple) else v for k, v in d.items()}
+        def plain(v):
+            return list(v) if isinstance(v, tuple) else v
+
+        d = {k: plain(v) for k, v in asdict(self).items()}
+        if self.layout == "free":  # as before the tabletop layout existed (dataset_info.json, resuming)
+            defaults = {f.name: f.default for f in fields(self)}
+            for name in _TABLETOP_FIELDS:
+                if d[name] == plain(defaults[name]):
+                    del d[name]
+        return d

@@ -15,12 +15,17 @@ Ground truth follows bop_toolkit's ``calc_gt_info``: ``bbox_obj`` is the box of 
 bop_toolkit does), ``px_count_all`` the whole silhouette's pixel count
 (also outside the image), ``px_count_valid`` the silhouette's pixels inside the image (all of which
 have rendered depth), ``px_count_visib`` the visible-mask pixels, ``visib_fract = visib / all``.
+
+``layout: tabletop`` (:mod:`kpd6d.synth.tabletop`) adds a textured table plane to the colour pass only,
+so it shows in rgb and depth but is never an occluder: the segmentation passes do not draw it, and
+the two-pass rule ignores the pixels whose colour-pass depth is the table plane's (the objects stand
+on it; at the contact line its depth ties with theirs).
 """
 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
@@ -28,9 +33,20 @@ from kpd6d.data.bop_io import bbox_from_mask
 from kpd6d.geometry import bbox_from_points, project_points
 from kpd6d.synth.config import SynthConfig
 from kpd6d.synth.photometric import PhotometricConfig, apply_photometric
-from kpd6d.synth.poses import ModelGeometry, projected_box, sample_object_pose
+from kpd6d.synth.poses import ModelGeometry, _inside, projected_box, sample_object_pose
+from kpd6d.synth.tabletop import (
+    RestingPoses,
+    TableScene,
+    depth_tolerance,
+    footprint,
+    make_table_mesh,
+    plane_depth,
+    table_camera,
+)
 
 __all__ = ["SceneComposer", "SceneInstance", "SceneSample", "silhouette_counts"]
+
+_GAP = 1.0  # mm: least clearance between footprints on the table (and of floating occluders above it)
 
 
 @dataclass
@@ -64,6 +80,8 @@ class SceneSample:
     K: np.ndarray
     instances: list[SceneInstance]
     attempts: int = 1
+    table: TableScene | None = None  # layout tabletop: the table and the camera pose in the table frame
+    distractor_items: list | None = None  # layout tabletop: the rendered occluders, (mesh, R, t)
 
 
 def bbox_obj_from_uv(uv: np.ndarray) -> list[int]:
@@ -130,6 +148,7 @@ class SceneComposer:
         self.ranges = cfg.view_ranges()
         self.photometric: PhotometricConfig = cfg.photometric_config()
         self.symmetry = symmetry_handlers or [None] * len(self.models)
+        self._resting: dict[tuple[str, int], RestingPoses] = {}  # (kind, index) -> resting poses, made once
 
     # -- sampling ----------------------------------------------------------------------------------
     def _choose_objects(self, rng) -> list[int]:
@@ -173,6 +192,175 @@ class SceneComposer:
         t = z * (np.linalg.inv(self.K) @ np.array([u, v, 1.0])) - R @ g.center
         return R, t
 
+    # -- table-top layout --------------------------------------------------------------------------
+    def _resting_poses(self, kind: str, i: int) -> RestingPoses:
+        rp = self._resting.get((kind, i))
+        if rp is None:
+            geom, mesh = ((self.geoms[i], getattr(self.models[i], "mesh", None)) if kind == "model"
+                          else (self.d_geoms[i], self.distractors[i]))
+            rp = self._resting[(kind, i)] = RestingPoses.from_geometry(geom, mesh)
+        return rp
+
+    def _grid(self, chosen) -> tuple[int, float]:
+        """(m, cell): the fallback layout puts the objects on an m x m grid of ``cell`` mm squares."""
+        return math.ceil(math.sqrt(len(chosen))), 2.0 * max(self.geoms[k].radius for k in chosen) + _GAP
+
+    def _sample_table(self, rng, chosen) -> TableScene:
+        """The table of one image: side lengths in ``table_size_range`` (enlarged to hold the fallback
+        grid of the objects), the look-at point (table-frame origin) at a random place on it at least
+        half the grid away from the edges, and a texture from the background source."""
+        m, cell = self._grid(chosen)
+        half = m * cell / 2.0 + _GAP
+        ext = []
+        for _ in range(2):
+            side = max(float(rng.uniform(*self.cfg.table_size_range)), 2.0 * half)
+            a = float(rng.uniform(half, side - half))  # the origin's distance from the low edge
+            ext += [-a, side - a]
+        sx, sy = ext[1] - ext[0], ext[3] - ext[2]
+        long = max(self.W, self.H)  # texture: the output's resolution at the table's aspect ratio
+        tw, th = (long, max(8, round(long * sy / sx))) if sx >= sy else (max(8, round(long * sx / sy)), long)
+        image = self.backgrounds.sample(rng, tw, th)
+        return TableScene(mesh=make_table_mesh(image, *ext), extent=tuple(ext))
+
+    def _table_camera(self, rng, table: TableScene) -> TableScene:
+        """The table with a camera looking down at its origin (elevation uniform on the sphere)."""
+        cfg = self.cfg
+        s_lo, s_hi = (math.sin(math.radians(a)) for a in cfg.table_elevation_range)
+        el = math.asin(min(1.0, rng.uniform(s_lo, s_hi)))
+        az = rng.uniform(0.0, 2.0 * math.pi)
+        dist = float(rng.uniform(*self.ranges.distance))
+        roll = math.radians(rng.uniform(*cfg.table_roll_range))
+        R, t = table_camera(el, az, dist, roll)
+        return replace(table, R_w2c=R, t_w2c=t, elevation_deg=math.degrees(el), distance=dist)
+
+    def _place_on_table(self, rng, rp: RestingPoses, cam: TableScene, placed: list, view_geom=None,
+                        tries: int = 30):
+        """A resting pose (R_mw, t_mw) of ``rp`` on the table within the cluster radius of the look-at
+        point (widened by 10 % per failed try), its footprint clear of the ``placed`` ones (it is
+        appended on success) and, with ``view_geom``, in view (``view_margin``); None if no try succeeds."""
+        R_mw = rp.sample(rng)
+        foot0, z_min = footprint(rp, R_mw)
+        rho = self.cfg.table_cluster_radius * cam.distance
+        for j in range(tries):
+            a = rng.uniform(0.0, 2.0 * math.pi)
+            p = rho * 1.1**j * math.sqrt(rng.random()) * np.array([math.cos(a), math.sin(a)])
+            foot = foot0.moved(p - foot0.center)  # the footprint circle centred at p
+            if not cam.holds(foot) or any(foot.overlaps(other, _GAP) for other in placed):
+                continue
+            t_mw = np.array([*(p - foot0.center), -z_min])
+            if view_geom is not None:
+                box, zmin = projected_box(view_geom, self.K, *cam.world_to_camera(R_mw, t_mw))
+                if not (zmin > self.renderer.znear and _inside(box, self.W, self.H, self.cfg.view_margin)):
+                    continue
+            placed.append(foot)
+            return R_mw, t_mw
+        return None
+
+    def _table_layout(self, rng, chosen, table: TableScene, layout_tries: int = 5):
+        """Camera and resting object poses (camera frame, symmetric ones canonicalised) and their
+        footprints; after ``layout_tries`` cameras without a layout in view, a grid (view ignored)."""
+        for _ in range(layout_tries):
+            cam = self._table_camera(rng, table)
+            placed, world = [], []
+            for k in chosen:
+                pose = self._place_on_table(rng, self._resting_poses("model", k), cam, placed, self.geoms[k])
+                if pose is None:
+                    break
+                world.append(pose)
+            if len(world) == len(chosen):
+                break
+        else:  # each object in its own grid cell around the look-at point: on the table, disjoint
+            m, cell = self._grid(chosen)
+            placed, world = [], []
+            for i, k in enumerate(chosen):
+                rp = self._resting_poses("model", k)
+                R_mw = rp.sample(rng)
+                foot0, z_min = footprint(rp, R_mw)
+                p = (np.array([i % m, i // m], dtype=np.float64) - (m - 1) / 2.0) * cell
+                placed.append(foot0.moved(p - foot0.center))
+                world.append((R_mw, np.array([*(p - foot0.center), -z_min])))
+        poses = []
+        for k, (R_mw, t_mw) in zip(chosen, world):
+            R, t = cam.world_to_camera(R_mw, t_mw)
+            handler = self.symmetry[k]
+            if handler is not None:  # an equivalent pose: the rendered object, resting as sampled
+                R, t = handler.canonicalize(R, t)
+                R, t = np.asarray(R, dtype=np.float64), np.asarray(t, dtype=np.float64)
+            poses.append((R, t))
+        return cam, poses, placed
+
+    def _lift_above_table(self, cam: TableScene, geom, R, t):
+        """Move a floating occluder up along the table normal until it is above the table plane."""
+        z = (cam.R_w2c.T @ ((geom.hull @ R.T + t) - cam.t_w2c).T)[2]
+        low = float(z.min())
+        return t if low >= _GAP else t + cam.R_w2c[:, 2] * (_GAP - low)
+
+    def _table_distractors(self, rng, chosen, poses, cam: TableScene, placed):
+        """Occluders: with probability ``table_distractor_rest_prob`` resting on the table near the
+        objects (footprints disjoint from everything resting there), otherwise (or when no place is
+        free) floating in front of an object as in the free layout, lifted above the table plane."""
+        cfg = self.cfg
+        n_d = int(rng.integers(cfg.distractors[0], cfg.distractors[1] + 1)) if self.distractors else 0
+        items = []
+        for _ in range(n_d):
+            d = int(rng.integers(len(self.distractors)))
+            pose = None
+            if rng.random() < cfg.table_distractor_rest_prob:
+                pose = self._place_on_table(rng, self._resting_poses("distractor", d), cam, placed, tries=20)
+                if pose is not None:
+                    pose = cam.world_to_camera(*pose)
+            if pose is None:
+                j = int(rng.integers(len(chosen)))
+                k = chosen[j]
+                R, t = poses[j]
+                box, _ = projected_box(self.geoms[k], self.K, R, t)
+                tz = float((R @ self.geoms[k].center + t)[2])
+                R_d, t_d = self._distractor_pose(rng, d, box, tz, self.geoms[k].radius)
+                pose = (R_d, self._lift_above_table(cam, self.d_geoms[d], R_d, t_d))
+            items.append((self.distractors[d], *pose))
+        return items
+
+    def _table_attempt(self, rng, chosen, lighting, table: TableScene):
+        """One table-top attempt. The table is drawn in the colour pass only: it is never an occluder.
+
+        Masks: a segmentation pass of the objects gives their silhouettes as far as occluders go (other
+        objects do cover them there). With occluders and a single-sampled colour pass, an object pixel
+        is hidden where the colour pass is nearer than the object (as in the free layout) unless the
+        colour-pass depth is that of the table plane there (within :func:`depth_tolerance`): the
+        objects stand on the table, which lies behind every object pixel and meets the object only at
+        the contact, where the two depths tie. With ``antialias`` the segmentation pass draws the
+        occluders too (no table) and gives the visible masks directly.
+        """
+        cfg = self.cfg
+        cam, poses, placed = self._table_layout(rng, chosen, table)
+        d_items = self._table_distractors(rng, chosen, poses, cam, placed)
+        n = len(chosen)
+        items = [(self.models[k], R, t) for k, (R, t) in zip(chosen, poses)] + d_items
+        col = self.renderer.render([*items, (table.mesh, cam.R_w2c, cam.t_w2c)], lighting=lighting, K=self.K,
+                                   masks=False)
+        if cfg.antialias:
+            seg = self.renderer.render(items, K=self.K, depth_only=True)
+            base = masks = seg.masks_visib[:n]
+            coverers = [[seg.masks_visib[j] for j in range(len(items)) if j != i] for i in range(n)]
+            depth = np.where(seg.depth > 0, seg.depth, col.depth)  # pixel-centre depth where it matters
+        else:
+            seg = self.renderer.render(items[:n], K=self.K, depth_only=True)
+            base = seg.masks_visib
+            masks = base
+            if d_items:
+                in_front = col.depth < seg.depth * (1.0 - 1e-6) - 1e-3
+                vs, us = np.nonzero(in_front)
+                if len(us):
+                    z = col.depth[vs, us].astype(np.float64)  # the colour pass's depth there
+                    plane = plane_depth(self.K, cam.R_w2c, cam.t_w2c, us, vs)
+                    table_tie = z >= plane - depth_tolerance(z, self.renderer.znear)
+                    in_front[vs[table_tie], us[table_tie]] = False
+                masks = [m & ~in_front for m in base]
+            coverers = [[base[j] for j in range(n) if j != i] for i in range(n)]
+            depth = col.depth
+        instances = self._instances(chosen, poses, masks, base, coverers)
+        return (col.rgb, depth), instances, cam, d_items
+
     # -- one image ---------------------------------------------------------------------------------
     def _attempt(self, rng, chosen, lighting):
         cfg = self.cfg
@@ -207,6 +395,12 @@ class SceneComposer:
             base = masks = res.masks_visib[:n]
             rgb, depth = res.rgb, res.depth
             coverers = [[res.masks_visib[j] for j in range(len(items)) if j != i] for i in range(n)]
+        instances = self._instances(chosen, poses, masks, base, coverers)
+        return (rgb, depth), instances
+
+    def _instances(self, chosen, poses, masks, base, coverers) -> list[SceneInstance]:
+        """Ground truth of the objects ``chosen`` at ``poses``: ``masks`` are their visible masks,
+        ``base`` their masks as far as occluders go, ``coverers[i]`` the masks that may cover object i."""
         instances = []
         for i, k in enumerate(chosen):
             model = self.models[k]
@@ -238,7 +432,7 @@ class SceneComposer:
                 bbox_visib=bbox_from_mask(mask), px_count_all=px_all, px_count_valid=px_valid,
                 px_count_visib=visib, visib_fract=float(visib / px_all) if px_all > 0 else 0.0,
             ))
-        return (rgb, depth), instances
+        return instances
 
     def _violation(self, instances) -> float:
         lo, hi = self.cfg.visib_fract_range
@@ -254,17 +448,26 @@ class SceneComposer:
         chosen = self._choose_objects(rng)
         lighting = Lighting.random(rng, specular_prob=cfg.specular_prob) if cfg.lighting == "random" else Lighting()
         background = self.backgrounds.sample(rng, self.W, self.H)
+        table = self._sample_table(rng, chosen) if cfg.layout == "tabletop" else None
         best = None
         attempts = 0
-        for _ in range(cfg.max_retries + 1):
-            attempts += 1
-            res, instances = self._attempt(rng, chosen, lighting)
-            v = self._violation(instances)
-            if best is None or v < best[0]:
-                best = (v, res, instances)
-            if v == 0:
-                break
-        _, (rendered, depth), instances = best
+        try:
+            for _ in range(cfg.max_retries + 1):
+                attempts += 1
+                if table is None:
+                    res, instances = self._attempt(rng, chosen, lighting)
+                    extra = (None, None)
+                else:
+                    res, instances, *extra = self._table_attempt(rng, chosen, lighting, table)
+                v = self._violation(instances)
+                if best is None or v < best[0]:
+                    best = (v, res, instances, extra)
+                if v == 0:
+                    break
+        finally:
+            if table is not None:
+                self._forget_mesh(table.mesh)
+        _, (rendered, depth), instances, (table_cam, d_items) = best
         # paste: the union of all rendered silhouettes (objects and occluders); feathering only
         # softens its inner edge (blends background into the outermost object pixels, no dark halo)
         alpha = (depth > 0).astype(np.float32)
@@ -272,4 +475,12 @@ class SceneComposer:
             alpha = np.minimum(alpha, cv2.GaussianBlur(alpha, (0, 0), cfg.feather_sigma))
         rgb = cv2.blendLinear(np.ascontiguousarray(rendered), background, alpha, 1.0 - alpha)
         rgb = apply_photometric(rgb, rng, self.photometric)
-        return SceneSample(rgb=rgb, depth=depth, K=self.K.copy(), instances=instances, attempts=attempts)
+        return SceneSample(rgb=rgb, depth=depth, K=self.K.copy(), instances=instances, attempts=attempts,
+                           table=table_cam, distractor_items=d_items)
+
+    def _forget_mesh(self, mesh) -> None:
+        """Drop a one-image mesh (the table) from the renderer's cache; its GL buffers and texture are
+        then released on the next render instead of accumulating."""
+        cache = getattr(self.renderer, "_cache", None)
+        if isinstance(cache, dict):
+            cache.pop(id(mesh), None)

@@ -121,11 +121,26 @@ def train_kpd_stage(cfg, run_dir: Path, root: Path, keypoints_file: Path) -> str
     return str(best if best.is_file() else run_dir / "checkpoints" / "last.ckpt")
 
 
+def _evaluate(cfg, root: Path, det, kpd, out_dir: Path) -> dict:
+    from omegaconf import OmegaConf
+
+    from kpd6d.cli.evaluate import run_evaluation
+
+    _log(f"evaluating on {root}/{cfg.evaluate.split} (detector: {det})")
+    ecfg = OmegaConf.create({
+        "data": {"root": str(root), "split": cfg.evaluate.split, "targets": "auto", "obj_ids": to_plain(cfg.objects.obj_ids),
+                 "max_frames": cfg.evaluate.max_frames},
+        "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
+        "batch_size": int(cfg.evaluate.batch_size), "refine_boxes": int(cfg.evaluate.get("refine_boxes", 0) or 0),
+        "device": None, "overlays": int(cfg.evaluate.overlays), "progress": bool(cfg.progress),
+    })
+    return run_evaluation(ecfg, out_dir)
+
+
 def run_experiment(cfg, run_dir: str | Path) -> dict:
     """Run every step into ``run_dir``; returns the evaluation metrics (also in ``run_dir/metrics.json``)."""
     from omegaconf import OmegaConf
 
-    from kpd6d.cli.evaluate import run_evaluation
     from kpd6d.data import atomic_write_text
 
     t_start = time.time()
@@ -146,16 +161,13 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     kpd = cfg.kpd_ckpt or train_kpd_stage(cfg, run_dir / "kpd", root, keypoints_file)
     timings["kpd_s"] = time.time() - t0
 
-    _log(f"evaluating on {root}/{cfg.evaluate.split} (detector: {det})")
+    # evaluation data: the generated test split, or a BOP dataset of real images (evaluate.data_root)
+    eval_root = Path(cfg.evaluate.data_root) if cfg.evaluate.get("data_root") else root
     t0 = time.time()
-    ecfg = OmegaConf.create({
-        "data": {"root": str(root), "split": cfg.evaluate.split, "targets": "auto", "obj_ids": to_plain(cfg.objects.obj_ids),
-                 "max_frames": cfg.evaluate.max_frames},
-        "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
-        "batch_size": int(cfg.evaluate.batch_size), "refine_boxes": int(cfg.evaluate.get("refine_boxes", 0) or 0), "device": None, "overlays": int(cfg.evaluate.overlays),
-        "progress": bool(cfg.progress),
-    })
-    metrics = run_evaluation(ecfg, run_dir / "eval")
+    metrics = _evaluate(cfg, eval_root, det, kpd, run_dir / "eval")
+    if cfg.evaluate.get("oracle") and str(det) != "oracle":  # also with ground-truth boxes: the KPD alone
+        oracle = _evaluate(cfg, eval_root, "oracle", kpd, run_dir / "eval_oracle")
+        metrics["oracle_boxes"] = {"mean": oracle["mean"], "report": str(run_dir / "eval_oracle" / "report.md")}
     timings["evaluate_s"] = time.time() - t0
     timings["total_s"] = time.time() - t_start
     metrics["run"] = {**metrics.get("run", {}), "timings": timings,

@@ -191,7 +191,12 @@ def test_kpd_checkpoint_records_normalisation_and_loads_without_the_package(tmp_
     trainer.strategy.connect(module)
     path = tmp_path / "kpd.ckpt"
     trainer.save_checkpoint(path)
+    recorded = torch.load(path, map_location="cpu", weights_only=False)["hyper_parameters"]["backbone"]
+    assert recorded == {"name": "efficientnet_lite0", "pretrained": "imagenet", "mean": [0.5] * 3, "std": [0.5] * 3}
     _block_package(monkeypatch)
+    # a later change of the default normalisation does not change what the checkpoint does
+    monkeypatch.setattr(pretrained, "backbone_normalization", lambda name: ((0.1,) * 3, (0.2,) * 3))
+    assert BACKBONES.build("efficientnet_lite0", pretrained=None).mean == [0.1] * 3
     loaded = KPDModule.load_checkpoint(path)
     assert loaded.hparams.backbone["pretrained"] is None
     torch.testing.assert_close(loaded.net.mean, module.net.mean)
@@ -290,3 +295,10 @@ def test_torchvision_detector_on_a_packaged_timm_backbone():
 
     with pytest.raises(DetectionInputError, match="needs a timm backbone with packaged weights"):
         DETECTORS.build("fcos", obj_ids=[1], backbone="resnet18", backbone_pretrained="imagenet")
+
+
+def test_pretrained_values_other_than_imagenet_or_a_file_are_errors(tmp_path):
+    with pytest.raises(PretrainedWeightsError, match="pretrained must be 'imagenet' or null"):
+        create_timm_model("efficientnet_lite0", pretrained="imagenet1k")
+    with pytest.raises(Exception, match=r"nothing\.pth"):  # a path is a local weights file, which must exist
+        BACKBONES.build("efficientnet_lite0", pretrained=str(tmp_path / "nothing.pth"))

@@ -46,6 +46,7 @@ __all__ = [
     "efficientnet_lite_key_map",
     "load_packaged_weights",
     "packaged_state_dict",
+    "resolve_normalization",
     "timm_name_of",
     "weights_file",
 ]
@@ -111,6 +112,17 @@ def backbone_normalization(backbone: str) -> tuple[tuple[float, ...], tuple[floa
     if cfg is not None and getattr(cfg, "mean", None) and getattr(cfg, "std", None) and len(cfg.mean) == 3:
         return tuple(float(v) for v in cfg.mean), tuple(float(v) for v in cfg.std)
     return IMAGENET
+
+
+def resolve_normalization(backbone: str, mean=None, std=None) -> tuple[list[float], list[float]]:
+    """(mean, std) as lists: the given values, else what ``backbone``'s weights expect; checked."""
+    dm, ds = backbone_normalization(backbone)
+    mean = [float(v) for v in (mean if mean is not None else dm)]
+    std = [float(v) for v in (std if std is not None else ds)]
+    if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
+        raise ValueError(f"backbone {backbone!r}: mean and std must be 3 numbers each (std > 0), got mean={mean}, "
+                         f"std={std}")
+    return mean, std
 
 
 def weights_file(backbone: str) -> Path:
@@ -250,6 +262,9 @@ def create_timm_model(backbone: str, pretrained: str | None = None, **kwargs) ->
     the callers' business (they know their model's key prefixes)."""
     import timm
 
+    if pretrained not in (None, "imagenet"):
+        raise PretrainedWeightsError(f"backbone {backbone!r}: pretrained must be 'imagenet' or null here, got "
+                                     f"{pretrained!r} (a local weights file goes through the caller's weights path)")
     model = timm.create_model(timm_name_of(backbone), pretrained=False, **kwargs)
     if pretrained == "imagenet":
         load_packaged_weights(model, backbone)

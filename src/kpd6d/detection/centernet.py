@@ -184,7 +184,7 @@ class CenterNet(Detector):
                  backbone_pretrained: str | None = None, mean: Sequence[float] | None = None,
                  std: Sequence[float] | None = None) -> None:
         super().__init__(obj_ids, input_size, score_threshold, max_detections, one_per_object)
-        from kpd6d.pretrained import backbone_normalization, create_timm_model
+        from kpd6d.pretrained import create_timm_model, resolve_normalization
 
         if backbone_pretrained not in (None, "imagenet"):
             if backbone_weights_path:
@@ -215,11 +215,10 @@ class CenterNet(Detector):
         self.wh_weight, self.offset_weight, self.min_overlap = float(wh_weight), float(offset_weight), float(min_overlap)
         self.dense_regression = bool(dense_regression)
         self.giou_weight = float(giou_weight)
-        dm, ds = backbone_normalization(backbone)
-        mean = [float(v) for v in (mean if mean is not None else dm)]
-        std = [float(v) for v in (std if std is not None else ds)]
-        if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
-            raise DetectionInputError(f"centernet: mean and std must be 3 numbers each (std > 0), got {mean}, {std}")
+        try:
+            mean, std = resolve_normalization(backbone, mean, std)
+        except ValueError as exc:
+            raise DetectionInputError(f"centernet: {exc}") from exc
         self.register_buffer("mean", torch.tensor(mean).view(1, 3, 1, 1), persistent=False)
         self.register_buffer("std", torch.tensor(std).view(1, 3, 1, 1), persistent=False)
         self.resolved_params = {"mean": mean, "std": std}  # recorded in checkpoints (kpd6d.detection.detectors)

@@ -95,13 +95,21 @@ class TorchvisionDetector(Detector):
                  weights_path: str | None = None, nms_threshold: float = 0.5, backbone_pretrained: str | None = None,
                  mean: Sequence[float] | None = None, std: Sequence[float] | None = None) -> None:
         super().__init__(obj_ids, input_size, score_threshold, max_detections, one_per_object)
-        from kpd6d.pretrained import IMAGENET, backbone_normalization
+        from kpd6d.pretrained import IMAGENET, resolve_normalization
+
+        if backbone_pretrained not in (None, "imagenet"):  # a local file: the backbone weights path
+            if backbone_weights_path:
+                raise DetectionInputError(f"{kind}: give backbone_pretrained or backbone_weights_path, not both")
+            backbone_weights_path, backbone_pretrained = backbone_pretrained, None
 
         w, h = self.input_size or (640, 480)
         # the normalisation the backbone's weights expect (torchvision's transform applies it)
-        dm, ds = backbone_normalization(backbone[5:]) if backbone.startswith("timm:") else IMAGENET
-        mean = [float(v) for v in (mean if mean is not None else dm)]
-        std = [float(v) for v in (std if std is not None else ds)]
+        if mean is None and std is None and not backbone.startswith("timm:"):
+            mean, std = IMAGENET
+        try:
+            mean, std = resolve_normalization(backbone.removeprefix("timm:"), mean, std)
+        except ValueError as exc:
+            raise DetectionInputError(f"{kind}: {exc}") from exc
         self.resolved_params = {"mean": mean, "std": std}
         common = dict(num_classes=self.num_classes + 1, min_size=min(w, h), max_size=max(w, h), image_mean=mean,
                       image_std=std)

@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from kpd6d.pretrained import IMAGENET, PACKAGED_WEIGHTS, backbone_normalization, create_timm_model
+from kpd6d.pretrained import IMAGENET, PACKAGED_WEIGHTS, create_timm_model, resolve_normalization
 from kpd6d.registry import BACKBONES
 
 __all__ = ["TIMM_BACKBONES", "Backbone", "BackboneWeightsError", "TinyBackbone", "timm_backbone"]
@@ -49,15 +49,6 @@ class BackboneWeightsError(ValueError):
     """A ``pretrained`` weights file that is missing or does not fit the backbone."""
 
 
-def _normalization(name: str, mean, std) -> tuple[list[float], list[float]]:
-    dm, ds = backbone_normalization(name)
-    mean = [float(v) for v in (mean if mean is not None else dm)]
-    std = [float(v) for v in (std if std is not None else ds)]
-    if len(mean) != 3 or len(std) != 3 or min(std) <= 0:
-        raise ValueError(f"backbone {name!r}: mean and std must be 3 numbers each (std > 0), got mean={mean}, std={std}")
-    return mean, std
-
-
 class Backbone(nn.Module):
     """A timm ``features_only`` model; ``forward`` returns all its stage features (stride 2/4 … 32).
 
@@ -69,7 +60,7 @@ class Backbone(nn.Module):
                  mean=None, std=None) -> None:
         super().__init__()
         self.model_name = model_name
-        self.mean, self.std = _normalization(model_name, mean, std)
+        self.mean, self.std = resolve_normalization(model_name, mean, std)
         imagenet = isinstance(pretrained, str) and pretrained == "imagenet"
         if imagenet and in_chans != 3:
             raise ValueError(f"backbone {model_name!r}: pretrained: imagenet needs in_chans=3, got {in_chans}")

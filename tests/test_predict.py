@@ -62,7 +62,7 @@ def test_image_and_folder_inputs(tmp_path):
     (folder / "notes.txt").write_text("not an image")
     pipe = FixedPosePipeline()
     info = predict_inputs(pipe, folder, K, tmp_path / "out", CORNERS, batch_size=2, progress=False)
-    assert info == {"frames": 3, "poses": 3, "out_dir": str(tmp_path / "out")}
+    assert info == {"frames": 3, "poses": 3, "out_dir": str(tmp_path / "out"), "errors": []}
     assert pipe.seen == [2, 1]
     data = json.loads((tmp_path / "out" / "poses.json").read_text())
     assert [f["name"] for f in data["frames"]] == ["im0.png", "im1.png", "im2.png"]
@@ -75,6 +75,29 @@ def test_image_and_folder_inputs(tmp_path):
     assert single["frames"] == 1 and (tmp_path / "one" / "overlays" / "im1.png").is_file()
     with pytest.raises(FileNotFoundError, match="does not exist"):
         predict_inputs(FixedPosePipeline(), tmp_path / "missing.png", K, tmp_path / "x", CORNERS, progress=False)
+
+
+def test_a_bad_image_in_a_folder_is_recorded_and_the_others_are_still_predicted(tmp_path):
+    img = np.full((120, 160, 3), 50, np.uint8)
+    folder = tmp_path / "imgs"
+    folder.mkdir()
+    for i in (0, 2, 3):
+        cv2.imwrite(str(folder / f"im{i}.png"), img)
+    (folder / "im1.png").write_bytes(b"not a png")
+    before = (folder / "im1.png").read_bytes()
+    info = predict_inputs(FixedPosePipeline(), folder, K, tmp_path / "out", CORNERS, batch_size=2, progress=False)
+    assert info["frames"] == 3 and info["poses"] == 3
+    assert [(e["index"], e["name"]) for e in info["errors"]] == [(1, "im1.png")]
+    assert "cannot be read as an image" in info["errors"][0]["error"]
+    data = json.loads((tmp_path / "out" / "poses.json").read_text())
+    assert [f["name"] for f in data["frames"]] == ["im0.png", "im2.png", "im3.png"] and data["errors"] == info["errors"]
+    assert [r.im_id for r in read_bop_results(tmp_path / "out" / "poses.csv")] == [0, 2, 3]
+    assert (folder / "im1.png").read_bytes() == before  # inputs untouched
+    # stop_on_error: stops at the bad image, and what was computed before it is written
+    with pytest.raises(ValueError, match=r"im1\.png: cannot be read as an image"):
+        predict_inputs(FixedPosePipeline(), folder, K, tmp_path / "stop", CORNERS, batch_size=1, progress=False,
+                       stop_on_error=True)
+    assert [f["name"] for f in json.loads((tmp_path / "stop" / "poses.json").read_text())["frames"]] == ["im0.png"]
 
 
 def test_video_in_video_out(tmp_path):

@@ -84,14 +84,25 @@ def _draw(image: np.ndarray, K, preds: list[dict], corners: dict[int, np.ndarray
     return out
 
 
+def _try_read(path: Path):
+    """(rgb, None) or (None, why) for an image of a folder: one bad file must not stop the others."""
+    try:
+        return _read_rgb(path), None
+    except (ValueError, OSError, cv2.error) as exc:
+        return None, str(exc)
+
+
 def _frames(source: Path, batch_size: int):
-    """Yield (kind, [(index, name, rgb)], fps) batches from an image, a folder of images or a video."""
+    """Yield (kind, [(index, name, rgb)], fps, [(index, name, error)]) batches from an image, a folder of
+    images or a video; unreadable images of a folder come in the error list."""
     if source.is_dir():
         files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_EXTS)
         if not files:
             raise FileNotFoundError(f"input={str(source)!r}: folder holds no images ({', '.join(IMAGE_EXTS)})")
         for i in range(0, len(files), batch_size):
-            yield "images", [(i + j, f.name, _read_rgb(f)) for j, f in enumerate(files[i:i + batch_size])], None
+            read = [(i + j, f.name, *_try_read(f)) for j, f in enumerate(files[i:i + batch_size])]
+            yield ("images", [(k, n, im) for k, n, im, err in read if err is None], None,
+                   [(k, n, err) for k, n, im, err in read if err is not None])
     elif source.suffix.lower() in VIDEO_EXTS:
         cap = cv2.VideoCapture(str(source))
         if not cap.isOpened():
@@ -105,15 +116,15 @@ def _frames(source: Path, batch_size: int):
             batch.append((idx, f"frame_{idx:06d}", cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)))
             idx += 1
             if len(batch) == batch_size:
-                yield "video", batch, fps
+                yield "video", batch, fps, []
                 batch = []
         cap.release()
         if batch:
-            yield "video", batch, fps
+            yield "video", batch, fps, []
         if idx == 0:
             raise ValueError(f"input={str(source)!r}: the video has no readable frames")
     elif source.is_file():
-        yield "images", [(0, source.name, _read_rgb(source))], None
+        yield "images", [(0, source.name, _read_rgb(source))], None, []
     else:
         raise FileNotFoundError(f"input={str(source)!r} does not exist")
 
@@ -131,19 +142,28 @@ def _count(source: Path) -> int | None:
 
 def predict_inputs(pipeline, source: str | os.PathLike, K: np.ndarray, out_dir: str | os.PathLike,
                    corners: dict[int, np.ndarray], batch_size: int = 4, overlays: bool = True,
-                   progress: bool = True) -> dict:
-    """Run ``pipeline`` on an image / folder / video and write poses.json, poses.csv and overlays to ``out_dir``."""
+                   progress: bool = True, stop_on_error: bool = False) -> dict:
+    """Run ``pipeline`` on an image / folder / video and write poses.json, poses.csv and overlays to ``out_dir``.
+
+    An unreadable image of a folder is recorded (``poses.json`` ``"errors"``: index, name, why) and
+    skipped, unless ``stop_on_error``; whatever was computed is written even when the run stops on an
+    error. The returned ``"errors"`` lists the failures (the CLI then exits with status 1)."""
     from tqdm import tqdm
 
     from kpd6d.evaluation.results_io import PoseResult, write_bop_results
 
     source, out_dir = Path(source), Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
-    entries, results = [], []
+    entries, results, errors = [], [], []
     writer, video_tmp, video_path = None, None, out_dir / "overlay.mp4"
     try:
         with tqdm(total=_count(source), desc="predict", unit="frame", disable=not progress) as bar:
-            for kind, batch, fps in _frames(source, max(1, int(batch_size))):
+            for kind, batch, fps, bad in _frames(source, max(1, int(batch_size))):
+                for idx, name, why in bad:
+                    errors.append({"index": idx, "name": name, "error": why})
+                    if stop_on_error:
+                        raise ValueError(f"input={str(source)!r}: {why}")
+                bar.update(len(bad))
                 sizes = {im.shape for _, _, im in batch}
                 groups = [batch] if len(sizes) == 1 else [[b] for b in batch]
                 for g in groups:
@@ -177,9 +197,11 @@ def predict_inputs(pipeline, source: str | os.PathLike, K: np.ndarray, out_dir: 
             writer.release()
         if video_tmp and os.path.exists(video_tmp):
             os.unlink(video_tmp)
-    atomic_write_text(out_dir / "poses.json", json.dumps({"K": K.tolist(), "frames": entries}, indent=1))
-    write_bop_results(out_dir / "poses.csv", results)
-    return {"frames": len(entries), "poses": len(results), "out_dir": str(out_dir)}
+        # everything computed so far, also when an error stops the run
+        atomic_write_text(out_dir / "poses.json", json.dumps({"K": K.tolist(), "frames": entries, "errors": errors},
+                                                             indent=1))
+        write_bop_results(out_dir / "poses.csv", results)
+    return {"frames": len(entries), "poses": len(results), "out_dir": str(out_dir), "errors": errors}
 
 
 def corners_from_kpd(kpd) -> dict[int, np.ndarray]:
@@ -209,9 +231,18 @@ def main(cfg) -> None:
                                          top_l=cfg.select.top_l, refine_boxes=int(cfg.get("refine_boxes", 0) or 0),
                                          device=cfg.device)
     info = predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=int(cfg.batch_size),
-                          overlays=bool(cfg.overlays), progress=bool(cfg.progress))
+                          overlays=bool(cfg.overlays), progress=bool(cfg.progress),
+                          stop_on_error=bool(cfg.get("stop_on_error", False)))
     print(f"{info['poses']} poses in {info['frames']} frame(s); wrote {out_dir}/poses.json, poses.csv"
           + (" and overlays" if cfg.overlays else ""))
+    if info["errors"]:
+        import sys
+
+        for e in info["errors"]:
+            print(f"kpd6d-predict: skipped {e['name']}: {e['error']}", file=sys.stderr)
+        print(f"kpd6d-predict: {len(info['errors'])} input(s) failed (listed in {out_dir}/poses.json 'errors')",
+              file=sys.stderr)
+        sys.exit(1)
 
 
 if __name__ == "__main__":

@@ -96,6 +96,7 @@ def compute_metrics(records: list[dict], diameters: dict[int, float], names: dic
             "name": names.get(oid, ""), "symmetric": bool(symmetric.get(oid, False)), "n": len(add),
             "failures": int((~np.isfinite(add)).sum()),
             "add_s_01d": add_s_accuracy(add, d, 0.1), "proj2d_5px": proj2d_accuracy(proj, 5.0),
+            "proj2d_10px": proj2d_accuracy(proj, 10.0), "proj2d_15px": proj2d_accuracy(proj, 15.0),
             "auc_add_s": auc(add / d, 0.5), "auc_proj2d": auc(proj, 50.0),
             "curves": {"proj2d": recall_at(proj, PX_THRESHOLDS).tolist(),
                        "add_s": recall_at(add / d, ADD_THRESHOLDS).tolist()},
@@ -110,6 +111,7 @@ def compute_metrics(records: list[dict], diameters: dict[int, float], names: dic
         "mean": {
             "n": int(sum(o["n"] for o in objs)),
             "add_s_01d": mean("add_s_01d"), "proj2d_5px": mean("proj2d_5px"),
+            "proj2d_10px": mean("proj2d_10px"), "proj2d_15px": mean("proj2d_15px"),
             "auc_add_s": mean("auc_add_s"), "auc_proj2d": mean("auc_proj2d"),
             "curves": {k: np.mean([o["curves"][k] for o in objs], axis=0).tolist() if objs else []
                        for k in ("proj2d", "add_s")},
@@ -166,12 +168,14 @@ def _check_resumable(out_dir: Path, run_info: dict | None, oracle: bool) -> None
 
 
 def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = False, batch_size: int = 1,
-             max_frames: int | None = None, n_overlays: int = 6, run_info: dict | None = None, progress: bool = True) -> dict:
+             max_frames: int | None = None, n_overlays: int = 6, run_info: dict | None = None, progress: bool = True,
+             extra_metrics: dict | None = None) -> dict:
     """Evaluate ``pipeline`` on ``dataset`` (a :class:`kpd6d.data.BopDataset`); writes everything to ``out_dir``.
 
     ``oracle``: give the detector the GT boxes (for the ``oracle`` detector). BOP19 AR_MSSD / AR_MSPD
     are computed on the evaluated frames only (their targets are written to
-    ``test_targets_bop19.json`` in ``out_dir``). Returns the metrics dict.
+    ``test_targets_bop19.json`` in ``out_dir``). ``extra_metrics`` (e.g. ``{"detector": {...}}``, the
+    detector's own AP on the same frames) go into metrics.json and the report. Returns the metrics dict.
     """
     from tqdm import tqdm
 
@@ -180,6 +184,11 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     from kpd6d.visualize import draw_overlay
 
     out_dir = Path(out_dir)
+    data_root = Path(dataset.root).resolve()
+    if out_dir.resolve() == data_root or data_root in out_dir.resolve().parents:
+        raise ValueError(f"evaluate: the output folder {str(out_dir)!r} is inside the dataset {str(dataset.root)!r}; "
+                         "outputs never go into an input dataset (they would overwrite its files, e.g. "
+                         "test_targets_bop19.json): choose an out_dir outside it")
     out_dir.mkdir(parents=True, exist_ok=True)
     frames = list(dataset)[: max_frames if max_frames else None]
     if not frames:
@@ -274,6 +283,7 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     metrics["stage_seconds_per_frame"] = {k: float(np.mean([r["stages"].get(k, 0.0) for r in recs])) for k in stage_keys}
     metrics["run"] = {**(run_info or {}), "dataset": str(dataset.root), "split": dataset.split, "frames": len(frames),
                       "batch_size": batch_size, "oracle": oracle}
+    metrics.update(extra_metrics or {})
     atomic_write_json(out_dir / "metrics.json", metrics)
 
     # plots, overlays, report

@@ -30,6 +30,22 @@ __all__ = ["KPDModule"]
 GROUPINGS = ("per_object", "shared")
 
 
+def _takes_pretrained(backbone_cfg: Mapping) -> bool:
+    import inspect
+
+    from kpd6d.registry import BACKBONES
+
+    name = backbone_cfg.get("name")
+    if "pretrained" in backbone_cfg:
+        return True
+    if name not in BACKBONES:
+        return False
+    try:
+        return "pretrained" in inspect.signature(BACKBONES.get(name)).parameters
+    except (TypeError, ValueError):
+        return False
+
+
 class KPDModule(pl.LightningModule):
     """Heatmap keypoint detector for the objects ``obj_ids``.
 
@@ -147,13 +163,32 @@ class KPDModule(pl.LightningModule):
         p = Path(path)
         if not p.is_file():
             raise FileNotFoundError(f"KPD checkpoint {str(p)!r} does not exist")
-        ckpt = torch.load(str(p), map_location="cpu", weights_only=False)
+        if p.stat().st_size == 0:
+            raise ValueError(f"KPD checkpoint {str(p)!r} is empty (0 bytes): an interrupted copy or save?")
+        try:
+            ckpt = torch.load(str(p), map_location="cpu", weights_only=False)
+        except Exception as exc:
+            raise ValueError(f"KPD checkpoint {str(p)!r} cannot be read (truncated, or not a torch checkpoint): "
+                             f"{type(exc).__name__}: {exc}") from exc
+        if isinstance(ckpt, dict) and "kpd6d_detector" in ckpt:
+            raise ValueError(f"{str(p)!r} is a detector checkpoint, not a KPD one: pass it as detector_ckpt "
+                             "(kpd_ckpt takes kpd/checkpoints/best.ckpt of a KPD run)")
         hparams = ckpt.get("hyper_parameters") if isinstance(ckpt, dict) else None
+        if not isinstance(hparams, Mapping) or not {"obj_ids", "keypoints_3d"} <= set(hparams) \
+                or not isinstance(ckpt.get("state_dict"), Mapping):
+            found = sorted(ckpt) if isinstance(ckpt, dict) else type(ckpt).__name__
+            raise ValueError(f"{str(p)!r} is not a kpd6d KPD checkpoint (expected a Lightning checkpoint of KPDModule "
+                             f"with hyper_parameters obj_ids / keypoints_3d and a state_dict; found {found})")
         extra = {}
-        if isinstance(hparams, Mapping) and isinstance(hparams.get("backbone"), Mapping):
+        backbone = hparams.get("backbone")
+        if isinstance(backbone, Mapping) and _takes_pretrained(backbone):
             # the weights are in the checkpoint: never consult a pretrained file or package again
-            extra["backbone"] = {**dict(hparams["backbone"]), "pretrained": None}
-        module = cls.load_from_checkpoint(str(p), map_location=map_location, weights_only=False, **extra)
+            extra["backbone"] = {**dict(backbone), "pretrained": None}
+        try:
+            module = cls.load_from_checkpoint(str(p), map_location=map_location, weights_only=False, **extra)
+        except RuntimeError as exc:  # weights that do not fit the recorded network
+            raise ValueError(f"KPD checkpoint {str(p)!r}: its weights do not fit the network its hyper-parameters "
+                             f"describe: {exc}") from exc
         return module.eval()
 
     def obj_indices(self, obj_ids) -> torch.Tensor:

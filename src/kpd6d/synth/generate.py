@@ -140,6 +140,40 @@ def _init_worker(spec: dict) -> None:
     )
 
 
+def _make_images(indices: list[int]) -> list[dict]:
+    return [_make_image(i) for i in indices]
+
+
+def _run_pool(ctx, n_workers: int, spec: dict, todo: list[int], chunk: int, consume) -> None:
+    """Images ``todo`` in ``n_workers`` processes, results to ``consume`` as they come. A worker that
+    dies (it cannot start, or crashes) ends the run with an error instead of being replaced
+    (multiprocessing.Pool respawns dead workers forever); on any error or Ctrl-C the pending work is
+    cancelled and the caller records what was finished."""
+    from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+    from concurrent.futures.process import BrokenProcessPool
+
+    ex = ProcessPoolExecutor(n_workers, mp_context=ctx, initializer=_init_worker, initargs=(spec,))
+    try:
+        chunks = [todo[i:i + chunk] for i in range(0, len(todo), chunk)]
+        pending, nxt = set(), 0
+        while nxt < len(chunks) or pending:
+            while nxt < len(chunks) and len(pending) < 4 * n_workers:  # bounded queue: errors surface early
+                pending.add(ex.submit(_make_images, chunks[nxt]))
+                nxt += 1
+            done, pending = wait(pending, return_when=FIRST_COMPLETED)
+            for fut in done:
+                consume(fut.result())
+    except BrokenProcessPool as exc:
+        how = ("each spawned worker re-imports the main module, so run generate_dataset from a script file whose "
+               "top level is guarded by `if __name__ == '__main__':` (not from standard input or a notebook cell "
+               "that cannot be re-imported), or use workers=1" if ctx.get_start_method() == "spawn" else
+               "see the worker's error above, or use workers=1")
+        raise RuntimeError(f"generate_dataset: a worker process died before finishing its images ({exc}); "
+                           f"{how}") from exc
+    finally:
+        ex.shutdown(wait=True, cancel_futures=True)
+
+
 def _make_image(index: int) -> dict:
     """Compose image ``index``, write its files, return its annotations."""
     spec, cfg, composer = _STATE["spec"], _STATE["cfg"], _STATE["composer"]
@@ -341,8 +375,7 @@ def generate_dataset(out_dir: str | os.PathLike, models_dir: str | os.PathLike |
             ctx = mp.get_context(cfg.mp_start_method)
             spec["single_thread_gl"] = True
             chunk = max(1, min(8, len(todo) // (4 * n_workers)))
-            with ctx.Pool(n_workers, initializer=_init_worker, initargs=(spec,)) as pool:
-                consume(pool.imap_unordered(_make_image, todo, chunksize=chunk))
+            _run_pool(ctx, n_workers, spec, todo, chunk, consume)
     finally:  # also on errors / Ctrl-C: record every image finished so far, so a rerun resumes
         for s in scenes.values():
             s.flush()

@@ -408,3 +408,17 @@ def test_centernet_loads_a_local_backbone_file_partially(tmp_path):
     torch.save({"x": torch.zeros(2)}, tmp_path / "other.pth")
     with pytest.raises(Exception, match="matches none"):
         build_detector("centernet", obj_ids=[1], backbone="resnet10t", backbone_weights_path=str(tmp_path / "other.pth"))
+
+
+def test_detection_evaluator_ap50_per_object():
+    """Object 1 found exactly, object 2 only by a box that misses it (IoU < 0.5): AP@0.5 1 and 0."""
+    from kpd6d.detection.evaluate import DetectionEvaluator
+
+    ev = DetectionEvaluator(per_object=True)
+    gt = {"boxes": torch.tensor([[10.0, 10.0, 40.0, 30.0], [100.0, 80.0, 50.0, 50.0]]), "obj_ids": torch.tensor([1, 2])}
+    det = Detections(boxes=torch.tensor([[10.0, 10.0, 40.0, 30.0], [130.0, 110.0, 50.0, 50.0]]),
+                     scores=torch.tensor([0.9, 0.8]), obj_ids=torch.tensor([1, 2]))
+    ev.update([det], [gt])
+    res = ev.compute()
+    assert res["ap50_per_object"] == {1: pytest.approx(1.0), 2: pytest.approx(0.0)}
+    assert res["map_50"] == pytest.approx(0.5)

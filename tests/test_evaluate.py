@@ -206,3 +206,18 @@ def test_kpd6d_evaluate_cli_with_a_real_untrained_kpd(tmp_path, monkeypatch, cap
     for name in ("results.csv", "report.md", "accuracy_vs_px.png", "accuracy_vs_add.png", "overlays/000001_000000.png"):
         assert (out / name).is_file(), name
     assert "wrote" in capsys.readouterr().out
+
+
+def test_projection_accuracy_at_5_10_15_px_and_report_columns(tmp_path):
+    from kpd6d.evaluation.evaluate import compute_metrics
+    from kpd6d.evaluation.report import write_report_md
+
+    recs = [{"obj_id": 1, "add": 1.0, "proj": p} for p in (3.0, 7.0, 12.0, 20.0)]
+    recs += [{"obj_id": 2, "add": 1.0, "proj": p} for p in (9.9, float("inf"))]
+    m = compute_metrics(recs, {1: 100.0, 2: 50.0})
+    o1, o2 = m["per_object"]["1"], m["per_object"]["2"]
+    assert (o1["proj2d_5px"], o1["proj2d_10px"], o1["proj2d_15px"]) == (0.25, 0.5, 0.75)
+    assert (o2["proj2d_5px"], o2["proj2d_10px"], o2["proj2d_15px"]) == (0.0, 0.5, 0.5)
+    assert m["mean"]["proj2d_15px"] == pytest.approx(0.625)
+    text = write_report_md(m, tmp_path / "report.md").read_text()
+    assert "| 10 px (%) | 15 px (%) |" in text and "| 75.0 | " in text

@@ -121,6 +121,24 @@ def train_kpd_stage(cfg, run_dir: Path, root: Path, keypoints_file: Path) -> str
     return str(best if best.is_file() else run_dir / "checkpoints" / "last.ckpt")
 
 
+def evaluate_detector_on(det_ckpt, root: Path, split: str, obj_ids, max_frames=None) -> dict:
+    """AP@0.5 (overall and per object), AP@0.5:0.95 and recall of a trained detector on a BOP split."""
+    from kpd6d.detection import load_detector
+    from kpd6d.detection.dataset import DetectionDataset
+    from kpd6d.detection.evaluate import evaluate_detector
+
+    det = load_detector(det_ckpt)
+    ds = DetectionDataset(root, split, obj_ids=obj_ids or det.obj_ids, input_size=det.input_size)
+    if max_frames:
+        import torch
+
+        ds = torch.utils.data.Subset(ds, range(min(int(max_frames), len(ds))))
+    res = evaluate_detector(det, ds, progress=False, per_object=True)
+    res.pop("box_stats", None)
+    res["images"] = len(ds)
+    return res
+
+
 def _evaluate(cfg, root: Path, det, kpd, out_dir: Path) -> dict:
     from omegaconf import OmegaConf
 
@@ -134,7 +152,12 @@ def _evaluate(cfg, root: Path, det, kpd, out_dir: Path) -> dict:
         "batch_size": int(cfg.evaluate.batch_size), "refine_boxes": int(cfg.evaluate.get("refine_boxes", 0) or 0),
         "device": None, "overlays": int(cfg.evaluate.overlays), "progress": bool(cfg.progress),
     })
-    return run_evaluation(ecfg, out_dir)
+    extra = None
+    if str(det) != "oracle":  # the detector's own AP on the same frames, per object
+        _log(f"evaluating the detector on {root}/{cfg.evaluate.split}")
+        extra = {"detector": evaluate_detector_on(det, root, cfg.evaluate.split, to_plain(cfg.objects.obj_ids),
+                                                  cfg.evaluate.max_frames)}
+    return run_evaluation(ecfg, out_dir, extra_metrics=extra)
 
 
 def run_experiment(cfg, run_dir: str | Path) -> dict:

@@ -86,13 +86,14 @@ def main(argv: list[str]) -> int:
         det = load_detector(a.checkpoint)
         ds = DetectionDataset(a.data, a.split, obj_ids=det.obj_ids, input_size=det.input_size)
         t0 = time.perf_counter()
-        res = evaluate_detector(det, ds)
+        res = evaluate_detector(det, ds, per_object=True)
         res.pop("box_stats", None)
         res.update(images=len(ds), eval_s=round(time.perf_counter() - t0, 1), checkpoint=a.checkpoint,
                    split=a.split)
         print(f"detector accuracy on {a.data} [{a.split}], {len(ds)} images, {res['num_gt']} objects:")
         print(f"  AP@0.5 = {res['map_50']:.4f}   AP@0.5:0.95 = {res['map']:.4f}   "
               f"recall@IoU0.5 (score >= {det.score_threshold}) = {res['recall_at_iou']:.4f}")
+        print("  AP@0.5 per object: " + ", ".join(f"{o}: {v:.3f}" for o, v in sorted(res["ap50_per_object"].items())))
         rows = [res]
     else:
         W, H = (int(v) for v in a.size.lower().split("x"))

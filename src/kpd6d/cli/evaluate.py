@@ -11,7 +11,7 @@ from pathlib import Path
 from kpd6d.cli.hydra_app import hydra_main
 
 
-def run_evaluation(cfg, out_dir: str | Path) -> dict:
+def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) -> dict:
     """The work of ``kpd6d-evaluate`` for a composed config (callable without Hydra's runtime)."""
     from omegaconf import OmegaConf
 
@@ -41,7 +41,7 @@ def run_evaluation(cfg, out_dir: str | Path) -> dict:
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "device": str(pipeline.device)}
     return evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle", batch_size=int(cfg.batch_size),
                     max_frames=cfg.data.max_frames, n_overlays=int(cfg.overlays), run_info=info,
-                    progress=bool(cfg.progress))
+                    progress=bool(cfg.progress), extra_metrics=extra_metrics)
 
 
 @hydra_main("evaluate")

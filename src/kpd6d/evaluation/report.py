@@ -73,14 +73,16 @@ def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] 
     for k in ("dataset", "split", "targets", "detector", "kpd", "pnp", "top_l", "refine_boxes", "frames", "device"):
         if k in info:
             lines.append(f"- {k}: `{info[k]}`")
-    lines += ["", "| object | id | n | ADD(-S) 0.1d (%) | 2D proj. 5 px (%) | AUC ADD(-S) ≤0.5d (%) | AR_MSSD (%) | AR_MSPD (%) |",
-              "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    lines += ["", "| object | id | n | ADD(-S) 0.1d (%) | 2D proj. 5 px (%) | 10 px (%) | 15 px (%) | AUC ADD(-S) ≤0.5d (%) "
+              "| AR_MSSD (%) | AR_MSPD (%) |", "|---|---:|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for oid, o in sorted(metrics["per_object"].items(), key=lambda kv: int(kv[0])):
         sym = " *" if o.get("symmetric") else ""
         lines.append(f"| {o.get('name') or '-'}{sym} | {oid} | {o['n']} | {_pct(o['add_s_01d'])} | {_pct(o['proj2d_5px'])} | "
+                     f"{_pct(o.get('proj2d_10px'))} | {_pct(o.get('proj2d_15px'))} | "
                      f"{_pct(o['auc_add_s'])} | {_pct(o.get('ar_mssd'))} | {_pct(o.get('ar_mspd'))} |")
     m = metrics["mean"]
     lines.append(f"| **mean** | | {m['n']} | **{_pct(m['add_s_01d'])}** | **{_pct(m['proj2d_5px'])}** | "
+                 f"{_pct(m.get('proj2d_10px'))} | {_pct(m.get('proj2d_15px'))} | "
                  f"{_pct(m['auc_add_s'])} | {_pct(m.get('ar_mssd'))} | {_pct(m.get('ar_mspd'))} |")
     lines += ["", "`*` symmetric object: ADD-S instead of ADD. Mean = mean over objects. Objects not detected or "
               "with a failed PnP count as failures.", ""]
@@ -94,6 +96,14 @@ def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] 
                      f"(batch size {info.get('batch_size', '?')}); stage times per frame (ms): "
                      + ", ".join(f"{k} {1000 * v:.1f}" for k, v in metrics.get("stage_seconds_per_frame", {}).items()))
     lines.append(f"Failures (not detected or PnP not ok): {metrics.get('failures', 0)} of {m['n']} instances.")
+    det = metrics.get("detector")
+    if det:
+        names = {oid: o.get("name") or "-" for oid, o in metrics["per_object"].items()}
+        lines += ["", f"Detector on the same frames ({det.get('images', '?')} images, {det.get('num_gt', '?')} objects): "
+                  f"AP@0.5 {_pct(det.get('map_50'))} %, AP@0.5:0.95 {_pct(det.get('map'))} %, recall@IoU 0.5 "
+                  f"{_pct(det.get('recall_at_iou'))} %.", "", "| object | id | AP@0.5 (%) |", "|---|---:|---:|"]
+        for oid, ap in sorted((det.get("ap50_per_object") or {}).items(), key=lambda kv: int(kv[0])):
+            lines.append(f"| {names.get(str(oid), '-')} | {oid} | {_pct(ap)} |")
     lines += ["", "![accuracy vs pixel threshold](accuracy_vs_px.png)", "",
               "![accuracy vs ADD threshold](accuracy_vs_add.png)", ""]
     for ov in overlays or []:

@@ -452,3 +452,41 @@ def test_bad_layout_options_are_named(tmp_path, models_dir):
         for value in values:
             with pytest.raises(ValueError, match=name):
                 SynthConfig.from_options({"layout": "tabletop", name: value})
+
+
+def test_upright_objects_stand_as_modelled_and_indoor_lighting(models_dir):
+    """table_upright_prob=1: every object's model +z is the table normal (and it still rests on the
+    table); lighting=indoor renders and stays deterministic."""
+    comp = _composer(models_dir, objects_per_image=(2, 3), distractors=(0, 1), visib_fract_range=(0.0, 1.0),
+                     table_upright_prob=1.0, lighting="indoor", canonicalize_symmetric=False)
+    by_id = {m.obj_id: m for m in comp.models}
+    for i in range(4):
+        s = comp.compose(np.random.default_rng([31, i]))
+        for inst in s.instances:
+            R_mw = s.table.R_w2c.T @ inst.R  # model -> table frame
+            np.testing.assert_allclose(R_mw[:, 2], [0.0, 0.0, 1.0], atol=1e-9)
+            assert abs(_to_table(s, by_id[inst.obj_id].vertices, inst.R, inst.t)[:, 2].min()) < 0.5
+        again = comp.compose(np.random.default_rng([31, i]))
+        assert np.array_equal(again.rgb, s.rgb)
+    with pytest.raises(ValueError, match="table_upright_prob must lie in"):
+        SynthConfig.from_options({"table_upright_prob": 1.5})
+    with pytest.raises(ValueError, match="lighting must be 'random', 'indoor' or 'fixed'"):
+        SynthConfig.from_options({"lighting": "sunny"})
+
+
+def test_indoor_lighting_is_dimmer_on_average_and_tinted():
+    from kpd6d.render import Lighting
+
+    rng = np.random.default_rng(0)
+    indoor = [Lighting.random_indoor(rng) for _ in range(300)]
+    rand = [Lighting.random(rng) for _ in range(300)]
+
+    def energy(lights):
+        return np.mean([np.mean(li.ambient) + sum(x.intensity for x in li.lights) / len(li.lights) for li in lights])
+
+    assert energy(indoor) < energy(rand)
+    assert min(min(x.intensity for x in li.lights) for li in indoor) < 1.0  # dim scenes occur
+    # warm and cool tints both occur (red/blue gain ratio above and below 1)
+    ratios = [li.ambient[0] / li.ambient[2] for li in indoor]
+    assert min(ratios) < 0.95 and max(ratios) > 1.05
+    assert all(x.direction[1] > 0 for li in indoor for x in li.lights)  # from above (OpenCV y down)

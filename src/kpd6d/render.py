@@ -64,6 +64,26 @@ class Lighting:
         spec = float(rng.uniform(0.1, 0.5)) if rng.random() < specular_prob else 0.0
         return cls(tuple(amb), lights, spec)
 
+    @classmethod
+    def random_indoor(cls, rng: np.random.Generator, specular_prob: float = 0.3) -> Lighting:
+        """Wider, on average dimmer indoor lighting than :meth:`random` (for scanned models whose vertex
+        colours already hold their albedo under light): ambient 0.2-0.9 with a colour temperature
+        tint, 1-3 directional lights of intensity 0.3-3.5, each tinted warm or cool, mostly from above
+        the camera's side of the scene; optional specular sheen."""
+        def tint():  # roughly 2700 K (warm) .. 6500 K (cool) as RGB gains
+            w = rng.uniform(-1.0, 1.0)
+            return np.clip(np.array([1.0 + 0.12 * w, 1.0, 1.0 - 0.15 * w]) * rng.uniform(0.9, 1.0, 3), 0.0, 1.2)
+
+        amb = rng.uniform(0.2, 0.9) * tint()
+        lights = []
+        for _ in range(int(rng.integers(1, 4))):
+            d = rng.normal(size=3)
+            d[2] = abs(d[2]) + 0.3
+            d[1] = abs(d[1]) * 0.5 + 0.2  # OpenCV y points down: light mostly from above
+            lights.append(Light(tuple(d / np.linalg.norm(d)), tuple(float(c) for c in tint()), float(rng.uniform(0.3, 3.5))))
+        spec = float(rng.uniform(0.1, 0.5)) if rng.random() < specular_prob else 0.0
+        return cls(tuple(float(a) for a in amb), lights, spec)
+
 
 @dataclass
 class RenderResult:

@@ -20,7 +20,7 @@ LAYOUTS = ("free", "tabletop")
 #: options of the table-top layout; with ``layout: free`` they are left out of ``to_dict`` while at
 #: their defaults, so that free-layout runs record (and resume with) the same settings as before
 _TABLETOP_FIELDS = ("layout", "table_elevation_range", "table_roll_range", "table_size_range",
-                    "table_cluster_radius", "table_distractor_rest_prob")
+                    "table_cluster_radius", "table_distractor_rest_prob", "table_upright_prob")
 
 
 def default_K(width: int, height: int) -> np.ndarray:
@@ -74,8 +74,9 @@ class SynthConfig:
     table_size_range: tuple[float, float] = (800.0, 2000.0)  # mm, side lengths of the table top
     table_cluster_radius: float = 0.15  # objects within this fraction of the camera distance of the look-at point
     table_distractor_rest_prob: float = 0.5  # chance that a distractor rests on the table (else it floats)
+    table_upright_prob: float = 0.0  # chance that an object stands as modelled (model +z up) instead of a random stable pose
     # appearance
-    lighting: str = "random"  # "random" (Lighting.random per image) or "fixed"
+    lighting: str = "random"  # "random" (Lighting.random per image), "indoor" (Lighting.random_indoor) or "fixed"
     specular_prob: float = 0.3
     backgrounds_dir: str | None = None  # folder of images; None: procedural backgrounds
     feather_sigma: float = 0.7  # px; softens the pasted objects' edges (0: hard paste)
@@ -140,8 +141,8 @@ class SynthConfig:
             setattr(self, name, _pair(name, getattr(self, name)))
         self.view_ranges()  # validates the angle / distance ranges
         self._validate_layout()
-        if self.lighting not in ("random", "fixed"):
-            raise ValueError(f"lighting must be 'random' or 'fixed', got {self.lighting!r}")
+        if self.lighting not in ("random", "indoor", "fixed"):
+            raise ValueError(f"lighting must be 'random', 'indoor' or 'fixed', got {self.lighting!r}")
         if self.rgb_format not in ("png", "jpg"):
             raise ValueError(f"rgb_format must be 'png' or 'jpg', got {self.rgb_format!r}")
         if int(self.scene_size) < 1:
@@ -174,7 +175,7 @@ class SynthConfig:
         lo, hi = self.table_size_range = _pair("table_size_range", self.table_size_range)
         if lo <= 0:
             raise ValueError(f"table_size_range must be positive (mm), got {list(self.table_size_range)}")
-        for name in ("table_cluster_radius", "table_distractor_rest_prob"):
+        for name in ("table_cluster_radius", "table_distractor_rest_prob", "table_upright_prob"):
             try:
                 v = float(getattr(self, name))
             except (TypeError, ValueError):
@@ -185,6 +186,8 @@ class SynthConfig:
                              f"got {self.table_cluster_radius!r}")
         if not (0.0 <= self.table_distractor_rest_prob <= 1.0):
             raise ValueError(f"table_distractor_rest_prob must lie in [0, 1], got {self.table_distractor_rest_prob!r}")
+        if not (0.0 <= self.table_upright_prob <= 1.0):
+            raise ValueError(f"table_upright_prob must lie in [0, 1], got {self.table_upright_prob!r}")
 
     # -- derived ---------------------------------------------------------------------------------
     def camera_K(self) -> np.ndarray:

@@ -234,11 +234,11 @@ class SceneComposer:
         return replace(table, R_w2c=R, t_w2c=t, elevation_deg=math.degrees(el), distance=dist)
 
     def _place_on_table(self, rng, rp: RestingPoses, cam: TableScene, placed: list, view_geom=None,
-                        tries: int = 30):
+                        tries: int = 30, upright_prob: float = 0.0):
         """A resting pose (R_mw, t_mw) of ``rp`` on the table within the cluster radius of the look-at
         point (widened by 10 % per failed try), its footprint clear of the ``placed`` ones (it is
         appended on success) and, with ``view_geom``, in view (``view_margin``); None if no try succeeds."""
-        R_mw = rp.sample(rng)
+        R_mw = rp.sample(rng, upright_prob)
         foot0, z_min = footprint(rp, R_mw)
         rho = self.cfg.table_cluster_radius * cam.distance
         for j in range(tries):
@@ -263,7 +263,8 @@ class SceneComposer:
             cam = self._table_camera(rng, table)
             placed, world = [], []
             for k in chosen:
-                pose = self._place_on_table(rng, self._resting_poses("model", k), cam, placed, self.geoms[k])
+                pose = self._place_on_table(rng, self._resting_poses("model", k), cam, placed, self.geoms[k],
+                                            upright_prob=self.cfg.table_upright_prob)
                 if pose is None:
                     break
                 world.append(pose)
@@ -274,7 +275,7 @@ class SceneComposer:
             placed, world = [], []
             for i, k in enumerate(chosen):
                 rp = self._resting_poses("model", k)
-                R_mw = rp.sample(rng)
+                R_mw = rp.sample(rng, self.cfg.table_upright_prob)
                 foot0, z_min = footprint(rp, R_mw)
                 p = (np.array([i % m, i // m], dtype=np.float64) - (m - 1) / 2.0) * cell
                 placed.append(foot0.moved(p - foot0.center))
@@ -446,7 +447,12 @@ class SceneComposer:
 
         cfg = self.cfg
         chosen = self._choose_objects(rng)
-        lighting = Lighting.random(rng, specular_prob=cfg.specular_prob) if cfg.lighting == "random" else Lighting()
+        if cfg.lighting == "random":
+            lighting = Lighting.random(rng, specular_prob=cfg.specular_prob)
+        elif cfg.lighting == "indoor":
+            lighting = Lighting.random_indoor(rng, specular_prob=cfg.specular_prob)
+        else:
+            lighting = Lighting()
         background = self.backgrounds.sample(rng, self.W, self.H)
         table = self._sample_table(rng, chosen) if cfg.layout == "tabletop" else None
         best = None

@@ -193,13 +193,18 @@ class RestingPoses:
         return cls(np.asarray(geom.hull, dtype=np.float64), np.asarray(geom.center, dtype=np.float64),
                    float(geom.radius), rots, probs)
 
-    def sample(self, rng: np.random.Generator) -> np.ndarray:
-        """A resting rotation (drawn by probability) followed by a random rotation about +z."""
-        i = min(int(np.searchsorted(self._cum, rng.random(), side="right")), len(self.probs) - 1)
+    def sample(self, rng: np.random.Generator, upright_prob: float = 0.0) -> np.ndarray:
+        """A resting rotation (drawn by probability) followed by a random rotation about +z. With
+        probability ``upright_prob`` the object stands as its model frame says instead (model +z along
+        the table normal: BOP / LineMod models are modelled standing upright), then turned about +z."""
+        if upright_prob > 0 and rng.random() < upright_prob:
+            base = np.eye(3)
+        else:
+            base = self.rotations[min(int(np.searchsorted(self._cum, rng.random(), side="right")), len(self.probs) - 1)]
         a = rng.uniform(0.0, 2.0 * math.pi)
         ca, sa = math.cos(a), math.sin(a)
         Rz = np.array([[ca, -sa, 0.0], [sa, ca, 0.0], [0.0, 0.0, 1.0]])
-        return Rz @ self.rotations[i]
+        return Rz @ base
 
 
 @dataclass

@@ -17,7 +17,7 @@ TINY = [
     "detector_stage.max_epochs=1", "detector_stage.batch_size=4", "detector_stage.precision=32-true",
     "backbone@kpd_stage.backbone=tiny", "kpd_stage.kpd.input_size=32", "kpd_stage.kpd.num_workers=0",
     "kpd_stage.kpd.batch_size=4", "kpd_stage.kpd.trainer.max_time=null", "kpd_stage.kpd.trainer.max_epochs=1",
-    "kpd_stage.kpd.trainer.precision=32-true",
+    "kpd_stage.kpd.trainer.precision=32-true", "kpd_stage.kpd.scheduler=null",
 ]
 
 
@@ -81,3 +81,67 @@ def test_kpd6d_run_cli(tmp_path, monkeypatch, capsys):
     assert f"report: {out}/eval/report.md" in printed and "2D projection 5px" in printed
     assert (out / "eval" / "report.md").is_file() and not (out / "detector").exists()
     assert json.loads((out / "metrics.json").read_text())["run"]["config"]["objects"]["obj_ids"] == [1]
+
+
+@pytest.mark.slow
+def test_evaluation_on_another_dataset_with_oracle_boxes_too(tmp_path):
+    """evaluate.data_root scores on a separate BOP dataset (as the real LM-O frames are), and
+    evaluate.oracle adds a second evaluation with ground-truth boxes."""
+    from kpd6d.synth import generate_dataset
+    from kpd6d.workflow import run_experiment
+
+    other = tmp_path / "other"
+    generate_dataset(other, obj_ids=[1], num_images=2, split="test", seed=99, workers=1, width=160, height=120)
+    run = tmp_path / "run"
+    m = run_experiment(_cfg(["data.num_test=0", f"evaluate.data_root={other}", "evaluate.oracle=true"]), run)
+    assert not (run / "data" / "test").exists()  # nothing generated for testing
+    assert m["mean"]["n"] == 2 and m["oracle_boxes"]["mean"]["n"] == 2
+    oracle = json.loads((run / "eval_oracle" / "metrics.json").read_text())
+    assert oracle["run"]["detector"] == "oracle" and oracle["run"]["dataset"] == str(other)
+    assert json.loads((run / "eval" / "metrics.json").read_text())["run"]["dataset"] == str(other)
+
+
+LMO_TINY = [
+    "experiment=lmo", "objects.obj_ids=[1,5]", "designator.num_keypoints=8", "data.num_train=6", "data.num_val=2",
+    "data.workers=1", "+data.options.width=160", "+data.options.height=120", "data.options.objects_per_image=[1,2]",
+    "evaluate.max_frames=2", "evaluate.overlays=1", "progress=false",
+    "detector.input_size=[128,96]", "detector_stage.max_minutes=null", "detector_stage.recipe=fast",
+    "detector_stage.max_epochs=1", "detector_stage.batch_size=4", "detector_stage.precision=32-true",
+    "backbone@kpd_stage.backbone=tiny", "kpd_stage.kpd.input_size=32", "kpd_stage.kpd.num_workers=0",
+    "kpd_stage.kpd.batch_size=4", "kpd_stage.kpd.trainer.max_time=null", "kpd_stage.kpd.trainer.max_epochs=1",
+    "kpd_stage.kpd.scheduler=null",
+]
+
+
+@pytest.mark.slow
+@pytest.mark.lmo
+def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir):
+    """experiment=lmo: SIFT keypoints on the real meshes, table-top training scenes, the pretrained
+    detector, evaluation on the real frames with the own detector and with ground-truth boxes."""
+    from kpd6d.workflow import run_experiment
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        full = compose("run", overrides=["experiment=lmo", f"objects.models_dir={lmo_dir / 'models'}",
+                                         f"evaluate.data_root={lmo_dir}"])
+        cfg = compose("run", overrides=[*LMO_TINY, f"objects.models_dir={lmo_dir / 'models'}",
+                                        f"evaluate.data_root={lmo_dir}"])
+    # the recipe itself: 8 objects, 50 SIFT keypoints (17 on the eggbox), table-top scenes, pretrained backbones
+    assert full.objects.obj_ids == [1, 5, 6, 8, 9, 10, 11, 12] and full.designator.name == "sift"
+    assert full.designator.num_keypoints == 50 and full.designator_per_object[10].symmetry_aware
+    assert full.data.options.layout == "tabletop" and full.data.num_test == 0
+    assert full.detector.backbone == "efficientnet_lite0" and full.detector.backbone_pretrained == "imagenet"
+    assert full.kpd_stage.backbone.name == "efficientnet_lite0" and full.evaluate.oracle
+
+    run = tmp_path / "run"
+    m = run_experiment(cfg, run)
+    info = json.loads((run / "data" / "dataset_info.json").read_text())
+    assert info["splits"]["train"]["config"]["layout"] == "tabletop"
+    for f in ("eval/results.csv", "eval/report.md", "eval_oracle/results.csv", "eval_oracle/report.md"):
+        assert (run / f).is_file(), f
+    assert m["mean"]["n"] > 0 and m["oracle_boxes"]["mean"]["n"] > 0
+    assert 0.0 <= m["mean"]["ar_mspd"] <= 1.0
+    # the detector's own AP on the real frames, per object, in metrics.json and the report
+    assert set(m["detector"]["ap50_per_object"]) <= {1, 5} and m["detector"]["images"] == 2
+    assert "Detector on the same frames (2 images" in (run / "eval" / "report.md").read_text()
+    assert "detector" not in json.loads((run / "eval_oracle" / "metrics.json").read_text())
+    assert json.loads((run / "eval" / "metrics.json").read_text())["run"]["dataset"] == str(lmo_dir)

@@ -38,4 +38,5 @@ def test_detector_latency_uses_the_configured_input_size(tmp_path, capsys):
 def test_detector_benchmark_rejects_unknown_config(capsys):
     with pytest.raises(SystemExit):
         bench.main(["--detectors", "centernet,nope"])
-    assert "known: centernet, centernet_tiny" in capsys.readouterr().err
+    err = capsys.readouterr().err
+    assert "nope" in err and "known: centernet, centernet_lite0, centernet_tiny" in err

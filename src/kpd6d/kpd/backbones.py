@@ -20,7 +20,7 @@ from pathlib import Path
 import torch
 from torch import nn
 
-from kpd6d.pretrained import IMAGENET, PACKAGED_WEIGHTS, create_timm_model, resolve_normalization
+from kpd6d.pretrained import PACKAGED_WEIGHTS, create_timm_model, resolve_normalization
 from kpd6d.registry import BACKBONES
 
 __all__ = ["TIMM_BACKBONES", "Backbone", "BackboneWeightsError", "TinyBackbone", "timm_backbone"]
@@ -152,8 +152,7 @@ class TinyBackbone(nn.Module):
         if width < 1:
             raise ValueError(f"tiny backbone: width must be >= 1, got {width}")
         self.model_name = "tiny"
-        self.mean = [float(v) for v in (mean if mean is not None else IMAGENET[0])]
-        self.std = [float(v) for v in (std if std is not None else IMAGENET[1])]
+        self.mean, self.std = resolve_normalization("tiny", mean, std)  # ImageNet's unless given
         self.channels = [width, 2 * width, 4 * width, 4 * width, 8 * width]
         self.reductions = [2, 4, 8, 16, 32]
         stages, cin = [], in_chans

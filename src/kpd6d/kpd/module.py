@@ -184,11 +184,15 @@ class KPDModule(pl.LightningModule):
         if isinstance(backbone, Mapping) and _takes_pretrained(backbone):
             # the weights are in the checkpoint: never consult a pretrained file or package again
             extra["backbone"] = {**dict(backbone), "pretrained": None}
+        # built from the checkpoint already read (Lightning's load_from_checkpoint would read the file again)
+        module = cls(**{**dict(hparams), **extra})
         try:
-            module = cls.load_from_checkpoint(str(p), map_location=map_location, weights_only=False, **extra)
+            module.load_state_dict(ckpt["state_dict"])
         except RuntimeError as exc:  # weights that do not fit the recorded network
             raise ValueError(f"KPD checkpoint {str(p)!r}: its weights do not fit the network its hyper-parameters "
                              f"describe: {exc}") from exc
+        if isinstance(map_location, (str, torch.device)):
+            module.to(map_location)
         return module.eval()
 
     def obj_indices(self, obj_ids) -> torch.Tensor:
@@ -294,9 +298,9 @@ class KPDModule(pl.LightningModule):
                       "rmsprop": torch.optim.RMSprop}
         if name not in optimizers:
             raise ValueError(f"unknown optimizer {name!r}; known: {', '.join(sorted(optimizers))}")
-        ft = self.hparams.finetune or finetune_config(None)
         lr = ocfg.pop("lr", 1e-3)
-        opt = optimizers[name](param_groups(self, self.net.backbone, lr, ft["backbone_lr_mult"]), lr=lr, **ocfg)
+        opt = optimizers[name](param_groups(self, self.net.backbone, lr, self.hparams.finetune["backbone_lr_mult"]),
+                               lr=lr, **ocfg)
         if not self.hparams.scheduler:
             return opt
         scfg = dict(self.hparams.scheduler)
@@ -333,7 +337,7 @@ class KPDModule(pl.LightningModule):
 
     def train(self, mode: bool = True):
         super().train(mode)
-        if mode and (self.hparams.get("finetune") or {}).get("freeze_bn"):
+        if mode and self.hparams.finetune["freeze_bn"]:
             apply_freeze_bn(self.net.backbone)  # keep the pretrained BatchNorm statistics
         return self
 

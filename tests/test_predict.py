@@ -9,9 +9,9 @@ import cv2
 import numpy as np
 import pytest
 
-from kpd6d.cli.predict import load_intrinsics, predict_inputs
 from kpd6d.evaluation.results_io import read_bop_results
 from kpd6d.geometry import LINEMOD_K, pose_from_view, project_points
+from kpd6d.predict import load_intrinsics, predict_inputs
 
 K = np.array([[500.0, 0, 80], [0, 500.0, 60], [0, 0, 1]])
 CORNERS = {1: np.array([[x, y, z] for z in (-20, 20) for y in (-20, 20) for x in (-20, 20)], float)}

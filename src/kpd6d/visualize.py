@@ -11,7 +11,7 @@ import numpy as np
 
 from kpd6d.geometry import project_points
 
-__all__ = ["BOX_EDGES", "GT_COLOR", "PRED_COLOR", "draw_box_3d", "draw_overlay", "draw_pose"]
+__all__ = ["BOX_EDGES", "GT_COLOR", "PRED_COLOR", "draw_box_3d", "draw_overlay", "draw_pose", "draw_predictions"]
 
 GT_COLOR = (0, 200, 0)  # RGB green (the paper's ground truth)
 PRED_COLOR = (30, 90, 255)  # RGB blue (the paper's prediction)
@@ -77,4 +77,21 @@ def draw_overlay(image: np.ndarray, K, corners: dict[int, np.ndarray], gt: list[
     for oid, R, t in pred:
         if oid in corners:
             draw_box_3d(out, corners[oid], K, R, t, PRED_COLOR, thickness=1)
+    return out
+
+
+def draw_predictions(image: np.ndarray, K, preds: list[dict], corners: dict[int, np.ndarray]) -> np.ndarray:
+    """A copy of ``image`` with the pipeline's predictions (``PosePipeline.predict_batch`` dicts): the
+    boxes of the poses that were solved (blue), the keypoints PnP used as dots and ``obj_id:score`` labels."""
+    import cv2
+
+    out = draw_overlay(image, K, corners, [], [(p["obj_id"], p["R"], p["t"]) for p in preds if p["ok"]])
+    for p in preds:
+        for (u, v), used in zip(np.asarray(p["keypoints_2d"]), np.asarray(p.get("used", []), bool)):
+            if used and np.isfinite(u) and np.isfinite(v):
+                cv2.circle(out, (round(float(u)), round(float(v))), 2, (255, 200, 0), -1, cv2.LINE_AA)
+        if p["ok"]:
+            x, y = np.asarray(p["box"])[:2]
+            cv2.putText(out, f"{p['obj_id']}:{p['score']:.2f}", (int(x), max(10, int(y) - 3)), cv2.FONT_HERSHEY_SIMPLEX,
+                        0.4, PRED_COLOR, 1, cv2.LINE_AA)
     return out

@@ -1,245 +1,32 @@
 """``kpd6d-predict input=IMAGE|FOLDER|VIDEO kpd_ckpt=KPD.ckpt detector_ckpt=DET.pt [camera=K_FILE] [out_dir=...]``.
 
-Estimates poses with :class:`kpd6d.pipeline.PosePipeline` and writes ``poses.json`` (one entry per
-image / video frame), ``poses.csv`` (BOP results format, scene_id 0, im_id = image index / frame
-number) and overlays (3D boxes in blue, used keypoints as dots): one PNG per image, or
-``overlay.mp4`` for a video. The camera comes from ``camera``: a BOP ``camera.json`` (fx, fy, cx,
-cy), or a JSON / text file holding a 3x3 matrix; null -> the LineMod camera.
+Runs :func:`kpd6d.predict.predict_from_config` (settings in conf/predict.yaml): ``poses.json``,
+``poses.csv`` and overlays (one PNG per image, or ``overlay.mp4`` for a video) in the run folder.
+The camera comes from ``camera``: a BOP ``camera.json``, or a JSON / text file holding a 3x3 matrix;
+null -> the LineMod camera. Exits with status 1 when an input could not be read.
 """
 
 from __future__ import annotations
 
-import json
-import os
-import tempfile
-import time
-from pathlib import Path
-
-import cv2
-import numpy as np
+import sys
 
 from kpd6d.cli.hydra_app import hydra_main
-from kpd6d.data import atomic_write_image, atomic_write_text
-from kpd6d.geometry import LINEMOD_K
-
-__all__ = ["IMAGE_EXTS", "VIDEO_EXTS", "load_intrinsics", "predict_inputs"]
-
-IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
-VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
-
-
-def load_intrinsics(path: str | os.PathLike | None) -> np.ndarray:
-    """K (3, 3) from a BOP camera.json, a JSON 3x3 / 9-list (or ``{"K"|"cam_K": ...}``) or a text file; None -> LineMod."""
-    if path is None:
-        return LINEMOD_K.copy()
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"camera={str(path)!r}: intrinsics file does not exist")
-    text = path.read_text()
-    try:
-        data = json.loads(text)
-    except json.JSONDecodeError:
-        data = None
-    if data is None:
-        try:
-            vals = np.array(text.replace(",", " ").split(), dtype=np.float64)
-        except ValueError:
-            raise ValueError(f"{path}: expected 9 numbers (a 3x3 K) or JSON") from None
-    elif isinstance(data, dict) and all(k in data for k in ("fx", "fy", "cx", "cy")):
-        vals = np.array([data["fx"], 0, data["cx"], 0, data["fy"], data["cy"], 0, 0, 1], dtype=np.float64)
-    elif isinstance(data, dict) and ("K" in data or "cam_K" in data):
-        vals = np.asarray(data.get("K", data.get("cam_K")), dtype=np.float64).reshape(-1)
-    elif isinstance(data, list):
-        vals = np.asarray(data, dtype=np.float64).reshape(-1)
-    else:
-        raise ValueError(f"{path}: JSON must be a BOP camera.json (fx, fy, cx, cy), a 3x3 list or hold 'K'/'cam_K'")
-    if vals.size != 9 or not np.isfinite(vals).all():
-        raise ValueError(f"{path}: expected 9 finite numbers for K, got {vals.size}")
-    K = vals.reshape(3, 3)
-    if K[0, 0] <= 0 or K[1, 1] <= 0:
-        raise ValueError(f"{path}: focal lengths must be > 0, got fx={K[0, 0]}, fy={K[1, 1]}")
-    return K
-
-
-
-def _read_rgb(path: Path) -> np.ndarray:
-    img = cv2.imread(str(path), cv2.IMREAD_COLOR)
-    if img is None:
-        raise ValueError(f"{path}: cannot be read as an image")
-    return cv2.cvtColor(img, cv2.COLOR_BGR2RGB)
-
-
-def _draw(image: np.ndarray, K, preds: list[dict], corners: dict[int, np.ndarray]) -> np.ndarray:
-    from kpd6d.visualize import PRED_COLOR, draw_overlay
-
-    out = draw_overlay(image, K, corners, [], [(p["obj_id"], p["R"], p["t"]) for p in preds if p["ok"]])
-    for p in preds:
-        for (u, v), used in zip(np.asarray(p["keypoints_2d"]), np.asarray(p.get("used", []), bool)):
-            if used and np.isfinite(u) and np.isfinite(v):
-                cv2.circle(out, (round(float(u)), round(float(v))), 2, (255, 200, 0), -1, cv2.LINE_AA)
-        if p["ok"]:
-            x, y = np.asarray(p["box"])[:2]
-            cv2.putText(out, f"{p['obj_id']}:{p['score']:.2f}", (int(x), max(10, int(y) - 3)), cv2.FONT_HERSHEY_SIMPLEX,
-                        0.4, PRED_COLOR, 1, cv2.LINE_AA)
-    return out
-
-
-def _try_read(path: Path):
-    """(rgb, None) or (None, why) for an image of a folder: one bad file must not stop the others."""
-    try:
-        return _read_rgb(path), None
-    except (ValueError, OSError, cv2.error) as exc:
-        return None, str(exc)
-
-
-def _frames(source: Path, batch_size: int):
-    """Yield (kind, [(index, name, rgb)], fps, [(index, name, error)]) batches from an image, a folder of
-    images or a video; unreadable images of a folder come in the error list."""
-    if source.is_dir():
-        files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_EXTS)
-        if not files:
-            raise FileNotFoundError(f"input={str(source)!r}: folder holds no images ({', '.join(IMAGE_EXTS)})")
-        for i in range(0, len(files), batch_size):
-            read = [(i + j, f.name, *_try_read(f)) for j, f in enumerate(files[i:i + batch_size])]
-            yield ("images", [(k, n, im) for k, n, im, err in read if err is None], None,
-                   [(k, n, err) for k, n, im, err in read if err is not None])
-    elif source.suffix.lower() in VIDEO_EXTS:
-        cap = cv2.VideoCapture(str(source))
-        if not cap.isOpened():
-            raise ValueError(f"input={str(source)!r}: cannot open the video")
-        fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
-        idx, batch = 0, []
-        while True:
-            ok, frame = cap.read()
-            if not ok:
-                break
-            batch.append((idx, f"frame_{idx:06d}", cv2.cvtColor(frame, cv2.COLOR_BGR2RGB)))
-            idx += 1
-            if len(batch) == batch_size:
-                yield "video", batch, fps, []
-                batch = []
-        cap.release()
-        if batch:
-            yield "video", batch, fps, []
-        if idx == 0:
-            raise ValueError(f"input={str(source)!r}: the video has no readable frames")
-    elif source.is_file():
-        yield "images", [(0, source.name, _read_rgb(source))], None, []
-    else:
-        raise FileNotFoundError(f"input={str(source)!r} does not exist")
-
-
-def _count(source: Path) -> int | None:
-    if source.is_dir():
-        return sum(1 for p in source.iterdir() if p.suffix.lower() in IMAGE_EXTS)
-    if source.suffix.lower() in VIDEO_EXTS:
-        cap = cv2.VideoCapture(str(source))
-        n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
-        cap.release()
-        return n or None
-    return 1
-
-
-def predict_inputs(pipeline, source: str | os.PathLike, K: np.ndarray, out_dir: str | os.PathLike,
-                   corners: dict[int, np.ndarray], batch_size: int = 4, overlays: bool = True,
-                   progress: bool = True, stop_on_error: bool = False) -> dict:
-    """Run ``pipeline`` on an image / folder / video and write poses.json, poses.csv and overlays to ``out_dir``.
-
-    An unreadable image of a folder is recorded (``poses.json`` ``"errors"``: index, name, why) and
-    skipped, unless ``stop_on_error``; whatever was computed is written even when the run stops on an
-    error. The returned ``"errors"`` lists the failures (the CLI then exits with status 1)."""
-    from tqdm import tqdm
-
-    from kpd6d.evaluation.results_io import PoseResult, write_bop_results
-
-    source, out_dir = Path(source), Path(out_dir)
-    out_dir.mkdir(parents=True, exist_ok=True)
-    entries, results, errors = [], [], []
-    writer, video_tmp, video_path = None, None, out_dir / "overlay.mp4"
-    try:
-        with tqdm(total=_count(source), desc="predict", unit="frame", disable=not progress) as bar:
-            for kind, batch, fps, bad in _frames(source, max(1, int(batch_size))):
-                for idx, name, why in bad:
-                    errors.append({"index": idx, "name": name, "error": why})
-                    if stop_on_error:
-                        raise ValueError(f"input={str(source)!r}: {why}")
-                bar.update(len(bad))
-                sizes = {im.shape for _, _, im in batch}
-                groups = [batch] if len(sizes) == 1 else [[b] for b in batch]
-                for g in groups:
-                    t0 = time.perf_counter()
-                    preds = pipeline.predict_batch([im for _, _, im in g], K)
-                    dt = (time.perf_counter() - t0) / len(g)
-                    for (idx, name, im), ps in zip(g, preds):
-                        entries.append({"index": idx, "name": name, "time": dt, "poses": [
-                            {"obj_id": int(p["obj_id"]), "score": float(p["score"]), "ok": bool(p["ok"]),
-                             "R": np.asarray(p["R"]).tolist(), "t": np.asarray(p["t"]).tolist(),
-                             "box": np.asarray(p["box"]).tolist()} for p in ps]})
-                        results += [PoseResult(0, idx, p["obj_id"], p["score"], p["R"], p["t"], dt) for p in ps if p["ok"]]
-                        if overlays:
-                            ov = _draw(im, K, ps, corners)
-                            if kind == "video":
-                                if writer is None:
-                                    fd, video_tmp = tempfile.mkstemp(prefix=".overlay.", suffix=".mp4", dir=out_dir)
-                                    os.close(fd)
-                                    writer = cv2.VideoWriter(video_tmp, cv2.VideoWriter_fourcc(*"mp4v"), fps,
-                                                             (ov.shape[1], ov.shape[0]))
-                                writer.write(cv2.cvtColor(ov, cv2.COLOR_RGB2BGR))
-                            else:
-                                atomic_write_image(out_dir / "overlays" / f"{Path(name).stem}.png", ov)
-                    bar.update(len(g))
-        if writer is not None:
-            writer.release()
-            writer = None
-            os.replace(video_tmp, video_path)
-    finally:
-        if writer is not None:
-            writer.release()
-        if video_tmp and os.path.exists(video_tmp):
-            os.unlink(video_tmp)
-        # everything computed so far, also when an error stops the run
-        atomic_write_text(out_dir / "poses.json", json.dumps({"K": K.tolist(), "frames": entries, "errors": errors},
-                                                             indent=1))
-        write_bop_results(out_dir / "poses.csv", results)
-    return {"frames": len(entries), "poses": len(results), "out_dir": str(out_dir), "errors": errors}
-
-
-def corners_from_kpd(kpd) -> dict[int, np.ndarray]:
-    """3D box corners per object from the KPD checkpoint's model points (else its keypoints)."""
-    hp = getattr(kpd, "hparams", {})
-    pts = hp.get("model_points") if hasattr(hp, "get") else None
-    out = {}
-    for j, (oid, kp) in enumerate(kpd.keypoints_3d.items()):
-        p = np.asarray(pts[j], float) if pts else np.asarray(kp, float)
-        lo, hi = p.min(0), p.max(0)
-        out[int(oid)] = np.array([[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])])
-    return out
+from kpd6d.predict import IMAGE_EXTS, VIDEO_EXTS, corners_from_kpd, load_intrinsics, predict_inputs  # noqa: F401 (old path)
 
 
 @hydra_main("predict")
 def main(cfg) -> None:
     from hydra.core.hydra_config import HydraConfig
-    from omegaconf import OmegaConf
 
-    from kpd6d.pipeline import PosePipeline
+    from kpd6d.predict import predict_from_config
 
-    if str(cfg.detector_ckpt) == "oracle":
-        raise ValueError("kpd6d-predict needs a trained detector (detector_ckpt=<file>): the oracle needs GT boxes")
     out_dir = cfg.out_dir or HydraConfig.get().runtime.output_dir
-    K = load_intrinsics(cfg.camera)
-    pipe = PosePipeline.from_checkpoints(cfg.detector_ckpt, cfg.kpd_ckpt, pnp=OmegaConf.to_container(cfg.pnp, resolve=True),
-                                         top_l=cfg.select.top_l, refine_boxes=int(cfg.get("refine_boxes", 0) or 0),
-                                         device=cfg.device)
-    info = predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=int(cfg.batch_size),
-                          overlays=bool(cfg.overlays), progress=bool(cfg.progress),
-                          stop_on_error=bool(cfg.get("stop_on_error", False)))
+    info = predict_from_config(cfg, out_dir)
     print(f"{info['poses']} poses in {info['frames']} frame(s); wrote {out_dir}/poses.json, poses.csv"
           + (" and overlays" if cfg.overlays else ""))
+    for e in info["errors"]:
+        print(f"kpd6d-predict: skipped {e['name']}: {e['error']}", file=sys.stderr)
     if info["errors"]:
-        import sys
-
-        for e in info["errors"]:
-            print(f"kpd6d-predict: skipped {e['name']}: {e['error']}", file=sys.stderr)
         print(f"kpd6d-predict: {len(info['errors'])} input(s) failed (listed in {out_dir}/poses.json 'errors')",
               file=sys.stderr)
         sys.exit(1)

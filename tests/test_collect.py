@@ -3,7 +3,8 @@ import json
 
 import pytest
 
-from kpd6d.cli.collect import collect, main
+from kpd6d.cli.collect import main
+from kpd6d.evaluation.collect import collect
 
 
 def _run(root, i, overrides, mean, per_object):

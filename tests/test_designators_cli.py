@@ -65,6 +65,25 @@ def test_resume_after_interruption(tmp_path, monkeypatch):
     assert not [p for p in tmp_path.iterdir() if p.name.endswith(".tmp")]
 
 
+def test_per_object_overrides_and_reuse_by_id_without_fingerprints(tmp_path):
+    models = procedural_objects(obj_ids=[1, 3])
+    cache = tmp_path / "kp.json"
+    pts, _ = designate_objects(models, "fps", {"num_keypoints": 6}, cache, per_object={3: {"num_keypoints": 4}},
+                               fingerprints=False, progress=False)
+    assert pts[1].shape == (6, 3) and pts[3].shape == (4, 3)
+    f = read_keypoint_file(cache)
+    assert f.params == {"num_keypoints": 6, "per_object": {"3": {"num_keypoints": 4}}} and f.fingerprints == {}
+    # without fingerprints a changed mesh does not invalidate its cached keypoints
+    models[1].mesh.apply_translation([1.0, 0.0, 0.0])
+    _, reused = designate_objects(models, "fps", {"num_keypoints": 6}, cache, per_object={3: {"num_keypoints": 4}},
+                                  fingerprints=False, progress=False)
+    assert reused == [1, 3]
+    # other overrides are other parameters: all recomputed
+    _, reused = designate_objects(models, "fps", {"num_keypoints": 6}, cache, per_object={3: {"num_keypoints": 5}},
+                                  fingerprints=False, progress=False)
+    assert reused == [] and load_keypoints(cache)[3].shape == (5, 3)
+
+
 def test_unknown_designator_and_parameter(tmp_path):
     from kpd6d.registry import UnknownNameError
 

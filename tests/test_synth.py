@@ -448,6 +448,31 @@ def test_keypoints_written_for_the_shipped_meshes(tmp_path, models_dir):
     assert info["designator"] == "fps" and set(info["objects"]["1"]) >= {"points", "fingerprint"}
 
 
+def test_interrupted_keypoint_designation_resumes_and_never_leaves_a_partial_keypoints_json(tmp_path, models_dir,
+                                                                                          monkeypatch):
+    from kpd6d.keypoints import designators
+
+    real = designators.FpsDesignator.__call__
+    calls = []
+
+    def flaky(self, m):
+        calls.append(m.obj_id)
+        if m.obj_id == 2:
+            raise KeyboardInterrupt
+        return real(self, m)
+
+    monkeypatch.setattr(designators.FpsDesignator, "__call__", flaky)
+    opts = {**SMALL, "designator": {"name": "fps", "num_keypoints": 8}}
+    with pytest.raises(KeyboardInterrupt):
+        generate_dataset(tmp_path, models_dir, num_images=1, progress=False, **opts)
+    assert not (tmp_path / "models" / "keypoints.json").exists()  # not a file that lacks object 2
+    monkeypatch.setattr(designators.FpsDesignator, "__call__", lambda self, m: calls.append(m.obj_id) or real(self, m))
+    generate_dataset(tmp_path, models_dir, num_images=1, progress=False, **opts)
+    assert calls == [1, 2, 2]  # object 1 is not designated again
+    assert sorted(BopDataset(tmp_path, "train").load_keypoints()) == [1, 2]
+    assert not list((tmp_path / "models").glob(".*"))
+
+
 def test_cli_composes_and_generates(tmp_path, models_dir):
     from hydra import compose, initialize_config_dir
 

@@ -53,7 +53,7 @@ def test_run_experiment_end_to_end_then_resumes(tmp_path):
 def test_designator_change_redesignates(tmp_path):
     from kpd6d.keypoints import read_keypoint_file
     from kpd6d.objects import procedural_objects
-    from kpd6d.workflow import designate
+    from kpd6d.workflow import designate_keypoints as designate
 
     models = procedural_objects(obj_ids=[1])
     f = tmp_path / "keypoints.json"

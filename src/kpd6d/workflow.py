@@ -2,7 +2,7 @@
 
 Steps, each skipped when its output already exists (so an interrupted run resumes):
 
-1. designate keypoints for every object (``keypoints.json``, via ``DESIGNATORS``);
+1. designate keypoints for every object (``keypoints.json``, via :mod:`kpd6d.keypoints.designate`);
 2. generate train / val / test render-and-paste data (``data/``, via :func:`kpd6d.synth.generate_dataset`);
 3. train the detector (``detector/detector.pt``) unless ``detector_ckpt`` is given or ``"oracle"``;
 4. train the KPD (``kpd/checkpoints/best.ckpt``) unless ``kpd_ckpt`` is given;
@@ -39,32 +39,24 @@ def load_objects(objects_cfg) -> list:
     return procedural_objects(obj_ids=ids)
 
 
-def designate(models: list, designator_cfg, out_file: Path, per_object: dict | None = None) -> dict[int, np.ndarray]:
-    """Keypoints of every model with the configured designator, cached in ``out_file``.
+def designate_keypoints(models: list, designator_cfg, out_file: Path, per_object: dict | None = None
+                        ) -> dict[int, np.ndarray]:
+    """Keypoints of every model with the run's designator, cached in ``out_file`` (through
+    :func:`kpd6d.keypoints.designate.designate_objects`; a run's file records no mesh fingerprints).
 
     ``per_object`` maps an object id to designator parameter overrides (the paper: 17 keypoints on
     the eggbox); they are recorded in the file's parameters.
     """
-    from kpd6d.keypoints import read_keypoint_file, save_keypoints
-    from kpd6d.registry import DESIGNATORS, build_from_cfg
+    from kpd6d.keypoints.designate import designate_objects, designator_name_params
 
-    params = to_plain(designator_cfg)
-    name, rest = params["name"], {k: v for k, v in params.items() if k != "name"}
-    per_object = {int(k): dict(v) for k, v in (to_plain(per_object) or {}).items()}
-    if per_object:
-        rest["per_object"] = {str(k): v for k, v in sorted(per_object.items())}
-    if out_file.is_file():
-        cached = read_keypoint_file(out_file)
-        if cached.designator == name and cached.params == rest and all(m.obj_id in cached.points for m in models):
-            return cached.points
-    kps = {}
-    for m in models:
-        t0 = time.time()
-        designator = build_from_cfg(DESIGNATORS, {**params, **per_object.get(m.obj_id, {})})
-        kps[m.obj_id] = designator(m)
-        _log(f"designated {len(kps[m.obj_id])} {params['name']} keypoints on object {m.obj_id} ({time.time() - t0:.1f} s)")
-    save_keypoints(out_file, kps, designator=name, params=rest)
-    return kps
+    name, params = designator_name_params(to_plain(designator_cfg))
+    points, _ = designate_objects(
+        models, name, params, out_file, per_object=to_plain(per_object), fingerprints=False, progress=False,
+        on_designated=lambda oid, pts, s: _log(f"designated {len(pts)} {name} keypoints on object {oid} ({s:.1f} s)"))
+    return points
+
+
+designate = designate_keypoints  # the old name (transition)
 
 
 def generate(cfg, root: Path) -> None:
@@ -171,7 +163,7 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     run_dir.mkdir(parents=True, exist_ok=True)
     models = load_objects(cfg.objects)
     keypoints_file = run_dir / "keypoints.json"
-    designate(models, cfg.designator, keypoints_file, cfg.get("designator_per_object"))
+    designate_keypoints(models, cfg.designator, keypoints_file, cfg.get("designator_per_object"))
 
     root = Path(cfg.data.root) if cfg.data.root else run_dir / "data"
     generate(cfg, root)

@@ -85,16 +85,14 @@ def _write_models(root: Path, models_dir: Path | None, obj_ids: list[int] | None
     if not info_path.is_file():
         atomic_write_json(info_path, {str(m.obj_id): m.info() for m in models})
     if cfg.designator is not None and not (out / "keypoints.json").is_file():
-        from kpd6d.keypoints import save_keypoints
-        from kpd6d.keypoints.io import model_fingerprint
-        from kpd6d.registry import DESIGNATORS, build_from_cfg
+        from kpd6d.keypoints.designate import designate_objects, designator_name_params
 
-        designator = build_from_cfg(DESIGNATORS, cfg.designator)
+        name, params = designator_name_params(cfg.designator)
         shipped = load_bop_models(out, ids)  # designate on the meshes the dataset ships
-        kps = {m.obj_id: np.asarray(designator(m), dtype=np.float64) for m in shipped}
-        params = {k: v for k, v in cfg.designator.items() if k != "name"}
-        save_keypoints(out / "keypoints.json", kps, designator=cfg.designator["name"], params=params,
-                       fingerprints={m.obj_id: model_fingerprint(m) for m in shipped})
+        # keypoints.json appears complete or not at all; the partial file lets an interrupted run resume
+        partial = out / ".keypoints.partial.json"
+        designate_objects(shipped, name, params, partial, progress=False)
+        os.replace(partial, out / "keypoints.json")
     return ids
 
 

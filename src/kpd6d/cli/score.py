@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from kpd6d.data import atomic_write_text
+from kpd6d.data.bop_io import atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:
@@ -29,22 +29,18 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: list[str] | None = None) -> int:
     args = build_parser().parse_args(argv)
-    from kpd6d.evaluation.bop19 import BopScoringError, format_scores_table, score_bop19_file
+    from kpd6d.evaluation import bop19
     from kpd6d.evaluation.results_io import ResultsFormatError
 
     try:
-        scores = score_bop19_file(args.results, args.root, split=args.split, targets_filename=args.targets,
-                                  visib_gt_min=args.visib_gt_min)
-    except (BopScoringError, ResultsFormatError) as exc:
+        scores = bop19.score_bop19_file(args.results, args.root, split=args.split, targets_filename=args.targets,
+                                        visib_gt_min=args.visib_gt_min)
+    except (bop19.BopScoringError, ResultsFormatError) as exc:
         print(f"kpd6d-score: {exc}", file=sys.stderr)
         return 2
     scores["results"] = str(args.results)
     scores["dataset_root"] = str(args.root)
-    print(format_scores_table(scores))
-    print(f"\nAR_MSSD {scores['ar_mssd']:.4f}  AR_MSPD {scores['ar_mspd']:.4f}  "
-          f"({scores['n_estimates_considered']} of {scores['n_estimates']} estimates considered, "
-          f"{scores['n_targets']} GT instances)")
-    print(f"VSD: {scores['vsd']}")
+    print(bop19.format_scores_table(scores) + "\n\n" + bop19.format_scores_summary(scores))
     if args.json:
         atomic_write_text(args.json, json.dumps(scores, indent=2))
         print(f"wrote {args.json}")

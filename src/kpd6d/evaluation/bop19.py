@@ -48,6 +48,7 @@ __all__ = [
     "BopScoringError",
     "GtInstance",
     "bop_symmetry_transforms",
+    "format_scores_summary",
     "format_scores_table",
     "greedy_match",
     "load_bop_gt",
@@ -358,3 +359,10 @@ def format_scores_table(scores: dict) -> str:
         lines.append(f"| {oid} | {s['n_gt']} | {s['ar_mssd']:.4f} | {s['ar_mspd']:.4f} |")
     lines.append(f"| **all** | {scores['n_targets']} | {scores['ar_mssd']:.4f} | {scores['ar_mspd']:.4f} |")
     return "\n".join(lines)
+
+
+def format_scores_summary(scores: dict) -> str:
+    """The closing lines of ``kpd6d-score``: both ARs, what was counted, and why VSD is not computed."""
+    return (f"AR_MSSD {scores['ar_mssd']:.4f}  AR_MSPD {scores['ar_mspd']:.4f}  "
+            f"({scores['n_estimates_considered']} of {scores['n_estimates']} estimates considered, "
+            f"{scores['n_targets']} GT instances)\nVSD: {scores['vsd']}")

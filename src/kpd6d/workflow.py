@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd6d.config import to_plain
+from kpd6d.io import to_plain
 
 __all__ = ["run_experiment"]
 
@@ -164,7 +164,7 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     """Run every step into ``run_dir``; returns the evaluation metrics (also in ``run_dir/metrics.json``)."""
     from omegaconf import OmegaConf
 
-    from kpd6d.data import atomic_write_text
+    from kpd6d.io import atomic_write_text
 
     t_start = time.time()
     run_dir = Path(run_dir)

@@ -219,7 +219,7 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     det = load_detector(run / "detector.pt", obj_ids=[1, 5])
     assert det.obj_ids == [1, 2, 5] and det.input_size == (96, 64)
     assert det.box_stats is None or "offsets" in det.box_stats
-    from kpd6d.kpd.box_augment import load_box_error_stats
+    from kpd6d.box_errors import load_box_error_stats
 
     if (run / "box_stats.json").is_file():  # only when some prediction matched after 2 epochs
         assert load_box_error_stats(run / "box_stats.json")["offsets"].shape[1] == 4

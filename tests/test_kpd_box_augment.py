@@ -5,15 +5,15 @@ import json
 import numpy as np
 import pytest
 
-from kpd6d.kpd.box_augment import (
+from kpd6d.box_errors import (
     BoxErrorStatsError,
     apply_offsets,
     box_offsets,
-    build_box_augment,
     fit_box_error_stats,
     load_box_error_stats,
     save_box_error_stats,
 )
+from kpd6d.kpd.box_augment import build_box_augment
 
 
 def test_offsets_by_hand_and_round_trip():

@@ -3,34 +3,12 @@
 from __future__ import annotations
 
 import os
-from collections.abc import Mapping
 from pathlib import Path
 from typing import Any
 
-import numpy as np
+from kpd6d.io import to_plain  # lives with the file writers; re-exported here
 
 __all__ = ["run_dir_of", "to_plain"]
-
-
-def to_plain(x: Any) -> Any:
-    """OmegaConf nodes, numpy arrays / scalars, mappings and sequences -> plain Python values
-    (so hyper-parameters pickle, and JSON / YAML files are written cleanly)."""
-    try:
-        from omegaconf import DictConfig, ListConfig, OmegaConf
-
-        if isinstance(x, (DictConfig, ListConfig)):
-            return OmegaConf.to_container(x, resolve=True)
-    except ImportError:  # pragma: no cover - omegaconf is a dependency
-        pass
-    if isinstance(x, np.ndarray):
-        return x.tolist()
-    if isinstance(x, np.generic):
-        return x.item()
-    if isinstance(x, Mapping):
-        return {k: to_plain(v) for k, v in x.items()}
-    if isinstance(x, (list, tuple)):
-        return [to_plain(v) for v in x]
-    return x
 
 
 def run_dir_of(cfg: Any) -> Path:

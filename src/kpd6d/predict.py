@@ -20,7 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from kpd6d.data.bop_io import atomic_write_image, atomic_write_text
+from kpd6d.io import atomic_write_image, atomic_write_text
 from kpd6d.geometry import LINEMOD_K
 from kpd6d.visualize import draw_predictions
 

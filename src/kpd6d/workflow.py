@@ -6,7 +6,8 @@ Steps, each skipped when its output already exists (so an interrupted run resume
 2. generate train / val / test render-and-paste data (``data/``, via :func:`kpd6d.synth.generate_dataset`);
 3. train the detector (``detector/detector.pt``) unless ``detector_ckpt`` is given or ``"oracle"``;
 4. train the KPD (``kpd/checkpoints/best.ckpt``) unless ``kpd_ckpt`` is given;
-5. evaluate on the test split (``eval/``: metrics.json, results.csv, report.md, plots, overlays).
+5. evaluate on the test split (``eval/``: metrics.json, results.csv, report.md, plots, overlays;
+   :func:`run_evaluation`, also the work of ``kpd6d-evaluate``).
 
 The stage configs are the same nodes ``kpd6d-train`` uses (``detector_stage`` = conf/stage/detector.yaml,
 ``kpd_stage`` = conf/stage/kpd.yaml), so a setting means the same thing in both tools.
@@ -20,9 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd6d.config import to_plain
+from kpd6d.io import to_plain
 
-__all__ = ["run_experiment"]
+__all__ = ["run_evaluation", "run_experiment"]
 
 
 def _log(msg: str) -> None:
@@ -131,10 +132,43 @@ def evaluate_detector_on(det_ckpt, root: Path, split: str, obj_ids, max_frames=N
     return res
 
 
-def _evaluate(cfg, root: Path, det, kpd, out_dir: Path) -> dict:
+def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) -> dict:
+    """Evaluate a detector + KPD checkpoint pair on a BOP split (the work of ``kpd6d-evaluate``, step 5
+    of :func:`run_experiment`); ``cfg`` is a composed conf/evaluate.yaml. Writes metrics.json,
+    results.csv, report.md, plots and overlays into ``out_dir`` and returns the metrics."""
     from omegaconf import OmegaConf
 
-    from kpd6d.cli.evaluate import run_evaluation
+    from kpd6d.data import BopDataset
+    from kpd6d.evaluation.evaluate import evaluate
+    from kpd6d.pipeline import PosePipeline
+
+    root = Path(cfg.data.root)
+    if not root.is_dir():
+        raise FileNotFoundError(f"data.root={str(root)!r}: BOP dataset root does not exist")
+    targets = cfg.data.targets
+    if targets == "auto":
+        targets = "test_targets_bop19.json" if (root / "test_targets_bop19.json").is_file() else None
+    pnp_cfg = OmegaConf.to_container(cfg.pnp, resolve=True)
+    top_l = cfg.select.top_l
+    obj_ids = list(cfg.data.obj_ids) if cfg.data.obj_ids else None
+    pipeline = PosePipeline.from_checkpoints(cfg.detector_ckpt, cfg.kpd_ckpt, pnp=pnp_cfg, top_l=top_l,
+                                             device=cfg.device, obj_ids=obj_ids,
+                                             refine_boxes=int(cfg.get("refine_boxes", 0) or 0))
+    covered = sorted(int(o) for o in pipeline.kpd.keypoints_3d)
+    wanted = obj_ids if obj_ids is not None else covered
+    missing = sorted(set(wanted) - set(covered))
+    if missing:
+        raise ValueError(f"data.obj_ids {missing} are not covered by the KPD checkpoint {cfg.kpd_ckpt} (it covers {covered})")
+    ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
+    info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(cfg.kpd_ckpt), "pnp": pnp_cfg,
+            "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "device": str(pipeline.device)}
+    return evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle", batch_size=int(cfg.batch_size),
+                    max_frames=cfg.data.max_frames, n_overlays=int(cfg.overlays), run_info=info,
+                    progress=bool(cfg.progress), extra_metrics=extra_metrics)
+
+
+def _evaluate(cfg, root: Path, det, kpd, out_dir: Path) -> dict:
+    from omegaconf import OmegaConf
 
     _log(f"evaluating on {root}/{cfg.evaluate.split} (detector: {det})")
     ecfg = OmegaConf.create({
@@ -156,7 +190,7 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     """Run every step into ``run_dir``; returns the evaluation metrics (also in ``run_dir/metrics.json``)."""
     from omegaconf import OmegaConf
 
-    from kpd6d.data import atomic_write_text
+    from kpd6d.io import atomic_write_text
 
     t_start = time.time()
     run_dir = Path(run_dir)

@@ -78,7 +78,7 @@ def _profile(args) -> None:
             t1 = time.perf_counter()
             stages["compose (paste, photometric)"] += (t1 - t0) - (
                 stages["background"] + stages["render (scene + extra silhouette passes)"] - before)
-            from kpd6d.data import atomic_write_image
+            from kpd6d.io import atomic_write_image
 
             cfg = gen._STATE["cfg"]
             sd = root / "prof" / "000000"

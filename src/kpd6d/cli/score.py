@@ -11,7 +11,7 @@ import json
 import sys
 from pathlib import Path
 
-from kpd6d.data.bop_io import atomic_write_text
+from kpd6d.io import atomic_write_text
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -1,4 +1,5 @@
-"""BOP file formats: JSON readers/writers and atomic file writes -- the one place for BOP I/O.
+"""BOP file formats: the JSON readers and writers -- the one place for BOP formats (generic file
+I/O, atomic writes included, is :mod:`kpd6d.io`).
 
 Layout (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_format.md)::
 
@@ -12,22 +13,30 @@ Layout (https://github.com/thodan/bop_toolkit/blob/master/docs/bop_datasets_form
     <root>/<split>/<scene:06d>/depth/<im:06d>.png   uint16, depth_mm = value * depth_scale
 
 ``cam_R_m2c`` is a row-major 3x3 rotation, ``cam_t_m2c`` a translation in mm (model -> OpenCV camera).
-Every writer puts its file in place atomically: it writes ``<name>.tmp-<pid>`` in the same folder and
-renames it (``os.replace``), so no half-written file ever sits under its final name.
+Every writer puts its file in place atomically (:func:`kpd6d.io.atomic_write_json`: a temporary file in
+the same folder, then ``os.replace``), so no half-written file ever sits under its final name.
 """
 
 from __future__ import annotations
 
-import json
 import os
-import tempfile
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
-from kpd6d.config import to_plain
+# the generic file helpers live in kpd6d.io; re-exported here for old import paths
+from kpd6d.io import (
+    FileFormatError,
+    atomic_write_bytes,
+    atomic_write_image,
+    atomic_write_json,
+    atomic_write_text,
+    dumps_json,
+    read_image,
+    read_json,
+)
 
 __all__ = [
     "BopFormatError",
@@ -51,115 +60,15 @@ __all__ = [
 ]
 
 
-def _default_file_mode() -> int:
-    mask = os.umask(0)
-    os.umask(mask)
-    return 0o666 & ~mask
-
-
-_FILE_MODE = _default_file_mode()
-
-
-class BopFormatError(ValueError):
+class BopFormatError(FileFormatError):
     """A BOP file that is missing, malformed or lacks a field; the message names the file and field."""
 
 
-# ---------------------------------------------------------------------------------------------
-# atomic writes
-# ---------------------------------------------------------------------------------------------
-def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same folder + ``os.replace``."""
-    path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
-    try:
-        os.fchmod(fd, _FILE_MODE)  # mkstemp makes 0600 files; give the usual permissions
-        with os.fdopen(fd, "wb") as f:
-            f.write(data)
-        os.replace(tmp, path)
-    except BaseException:
-        try:
-            os.unlink(tmp)
-        except OSError:
-            pass
-        raise
-    return path
+dumps_bop_json = dumps_json  # the JSON layout bop_toolkit writes (kpd6d.io.dumps_json)
 
 
-def atomic_write_text(path: str | os.PathLike, text: str) -> Path:
-    """Write ``text`` (UTF-8) to ``path`` atomically."""
-    return atomic_write_bytes(path, text.encode())
-
-
-def dumps_bop_json(data: Any) -> str:
-    """JSON text as bop_toolkit writes it: a dict puts one key per line, values compact."""
-    if isinstance(data, Mapping):
-        items = [f"  {json.dumps(str(k))}: {json.dumps(to_plain(v), sort_keys=True)}" for k, v in data.items()]
-        return "{\n" + ",\n".join(items) + "\n}\n"
-    if isinstance(data, list):
-        return "[\n" + ",\n".join("  " + json.dumps(to_plain(v), sort_keys=True) for v in data) + "\n]\n"
-    return json.dumps(to_plain(data), sort_keys=True, indent=2) + "\n"
-
-
-def atomic_write_json(path: str | os.PathLike, data: Any) -> Path:
-    """Write ``data`` as JSON (bop_toolkit style) atomically."""
-    return atomic_write_bytes(path, dumps_bop_json(data).encode())
-
-
-def atomic_write_image(path: str | os.PathLike, image: np.ndarray, *, png_compression: int = 1,
-                       jpg_quality: int = 95) -> Path:
-    """Encode ``image`` (RGB uint8 (H, W, 3), or a (H, W) uint8/uint16 single channel) by the
-    extension of ``path`` (.png / .jpg) and write it atomically."""
-    import cv2
-
-    path = Path(path)
-    ext = path.suffix.lower()
-    img = np.asarray(image)
-    if img.ndim == 3:
-        img = img[..., ::-1]  # RGB -> BGR for OpenCV
-    if ext == ".png":
-        params = [cv2.IMWRITE_PNG_COMPRESSION, int(png_compression)]
-    elif ext in (".jpg", ".jpeg"):
-        params = [cv2.IMWRITE_JPEG_QUALITY, int(jpg_quality)]
-    else:
-        raise ValueError(f"{path}: unsupported image extension {ext!r}; use .png or .jpg")
-    ok, buf = cv2.imencode(ext, np.ascontiguousarray(img), params)
-    if not ok:
-        raise OSError(f"{path}: OpenCV could not encode a {img.dtype} image of shape {img.shape}")
-    return atomic_write_bytes(path, buf.tobytes())
-
-
-def read_image(path: str | os.PathLike, *, flags: int | None = None) -> np.ndarray:
-    """Read an image with OpenCV; colour images come back RGB uint8. Errors name the path."""
-    import cv2
-
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: image file does not exist")
-    img = cv2.imread(str(path), cv2.IMREAD_UNCHANGED if flags is None else flags)
-    if img is None:
-        raise OSError(f"{path}: cannot be read as an image (corrupt or unsupported format)")
-    if img.ndim == 3:
-        if img.shape[2] == 4:
-            img = img[..., :3]
-        img = np.ascontiguousarray(img[..., ::-1])
-    return img
-
-
-# ---------------------------------------------------------------------------------------------
-# readers
-# ---------------------------------------------------------------------------------------------
-def read_json(path: str | os.PathLike, *, what: str = "JSON file", error: type[Exception] = BopFormatError) -> Any:
-    """Parse a JSON file; a missing, non-text or malformed file raises ``error`` naming the file."""
-    path = Path(path)
-    if not path.is_file():
-        raise error(f"{path}: {what} does not exist")
-    try:
-        return json.loads(path.read_text())
-    except json.JSONDecodeError as exc:
-        raise error(f"{path}: invalid JSON ({exc})") from exc
-    except UnicodeDecodeError as exc:
-        raise error(f"{path}: not a text file ({exc})") from exc
+def _read_bop_json(path: Path, what: str) -> Any:
+    return read_json(path, what=what, error=BopFormatError)
 
 
 def _im_dict(path: Path, raw: Any) -> dict[int, Any]:
@@ -200,7 +109,7 @@ def _field(path: Path, where: str, entry: Any, name: str, length: int | None = N
 def load_scene_gt(path: str | os.PathLike) -> dict[int, list[dict]]:
     """``scene_gt.json`` -> ``{im_id: [{"obj_id": int, "R": (3, 3), "t": (3,) mm}, ...]}``."""
     path = Path(path)
-    raw = _im_dict(path, read_json(path, what="scene_gt.json"))
+    raw = _im_dict(path, _read_bop_json(path, "scene_gt.json"))
     out: dict[int, list[dict]] = {}
     for im_id, entries in raw.items():
         if not isinstance(entries, list):
@@ -220,7 +129,7 @@ def load_scene_gt(path: str | os.PathLike) -> dict[int, list[dict]]:
 def load_scene_camera(path: str | os.PathLike) -> dict[int, dict]:
     """``scene_camera.json`` -> ``{im_id: {"K": (3, 3), "depth_scale": float | None}}``."""
     path = Path(path)
-    raw = _im_dict(path, read_json(path, what="scene_camera.json"))
+    raw = _im_dict(path, _read_bop_json(path, "scene_camera.json"))
     out = {}
     for im_id, e in raw.items():
         where = f"image {im_id}"
@@ -237,7 +146,7 @@ def load_scene_gt_info(path: str | os.PathLike) -> dict[int, list[dict]]:
     """``scene_gt_info.json`` -> ``{im_id: [{"bbox_obj": (4,) int, "bbox_visib", "px_count_all",
     "px_count_valid", "px_count_visib", "visib_fract"}, ...]}``."""
     path = Path(path)
-    raw = _im_dict(path, read_json(path, what="scene_gt_info.json"))
+    raw = _im_dict(path, _read_bop_json(path, "scene_gt_info.json"))
     out: dict[int, list[dict]] = {}
     for im_id, entries in raw.items():
         if not isinstance(entries, list):
@@ -261,7 +170,7 @@ def load_scene_gt_info(path: str | os.PathLike) -> dict[int, list[dict]]:
 def load_camera(path: str | os.PathLike) -> dict:
     """BOP ``camera.json`` -> ``{"K": (3, 3), "width", "height", "depth_scale"}``."""
     path = Path(path)
-    e = read_json(path, what="camera.json")
+    e = _read_bop_json(path, "camera.json")
     where = "camera"
     fx, fy, cx, cy = (_field(path, where, e, k) for k in ("fx", "fy", "cx", "cy"))
     K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
@@ -276,7 +185,7 @@ def load_camera(path: str | os.PathLike) -> dict:
 def load_targets(path: str | os.PathLike) -> dict[tuple[int, int], dict[int, int]]:
     """BOP19 ``test_targets_bop19.json`` -> ``{(scene_id, im_id): {obj_id: inst_count}}``."""
     path = Path(path)
-    raw = read_json(path, what="targets file")
+    raw = _read_bop_json(path, "targets file")
     if not isinstance(raw, list):
         raise BopFormatError(f"{path}: expected a list of targets, got {type(raw).__name__}")
     out: dict[tuple[int, int], dict[int, int]] = {}

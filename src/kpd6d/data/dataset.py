@@ -21,8 +21,8 @@ from kpd6d.data.bop_io import (
     load_scene_gt,
     load_scene_gt_info,
     load_targets,
-    read_image,
 )
+from kpd6d.io import read_image
 
 __all__ = ["BopDataset", "Frame", "Instance"]
 

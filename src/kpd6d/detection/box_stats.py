@@ -1,11 +1,13 @@
-"""Match predicted to ground-truth boxes by IoU and fit the box-error statistics that the KPD's
-``pgpg`` box augmentation samples from (format: :mod:`kpd6d.kpd.box_augment`)."""
+"""Measuring the detector's box errors: match predicted to ground-truth boxes by IoU and fit the
+box-error statistics that the KPD's ``pgpg`` box augmentation samples from (fitting, file format
+and loading: :mod:`kpd6d.box_errors`, shared by both stages)."""
 
 from __future__ import annotations
 
 import numpy as np
 import torch
 
+from kpd6d.box_errors import fit_box_error_stats
 from kpd6d.detection.detections import xywh_to_xyxy
 
 __all__ = ["BoxErrorCollector", "match_boxes"]
@@ -67,8 +69,6 @@ class BoxErrorCollector:
 
     def stats(self) -> dict | None:
         """Box-error stats (``fit_box_error_stats``) plus ``recall`` at the IoU threshold; None if no match."""
-        from kpd6d.kpd.box_augment import fit_box_error_stats
-
         if not self.gt:
             return None
         gt, pred = np.concatenate(self.gt), np.concatenate(self.pred)

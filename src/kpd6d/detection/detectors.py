@@ -18,11 +18,11 @@ from typing import Any
 
 import torch
 
-from kpd6d.config import to_plain
 from kpd6d.detection.centernet import CenterNet
 from kpd6d.detection.detections import DetectionInputError, Detector
 from kpd6d.detection.oracle import OracleDetector
 from kpd6d.detection.torchvision_detectors import TorchvisionDetector
+from kpd6d.io import to_plain
 from kpd6d.registry import DETECTORS
 
 __all__ = ["CHECKPOINT_KEY", "build_detector", "load_detector", "save_detector"]

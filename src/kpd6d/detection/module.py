@@ -114,7 +114,7 @@ class DetectorModule(pl.LightningModule):
         if stats is not None and not self.trainer.sanity_checking:
             self.detector.box_stats = stats
             if self.stats_path:
-                from kpd6d.kpd.box_augment import save_box_error_stats
+                from kpd6d.box_errors import save_box_error_stats
 
                 save_box_error_stats(self.stats_path, stats)
         self.last_metrics = {k: v for k, v in res.items() if k != "box_stats"}

@@ -8,13 +8,12 @@ dataset), ``checkpoints/`` (Lightning, ``last.ckpt`` for resuming), ``tb/`` and 
 
 from __future__ import annotations
 
-import json
-import os
 import time
 from pathlib import Path
 from typing import Any
 
-from kpd6d.config import run_dir_of, to_plain
+from kpd6d.config import run_dir_of
+from kpd6d.io import atomic_write_json, to_plain
 
 __all__ = ["prepare_data", "train_detector"]
 
@@ -140,9 +139,7 @@ def train_detector(cfg: Any) -> Path:
     out = save_detector(det, run_dir / "detector.pt")
     summary = {"detector": str(out), "obj_ids": det_cfg["obj_ids"], "train_wall_s": wall,
                "epochs": trainer.current_epoch, **getattr(module, "last_metrics", {})}
-    tmp = run_dir / "summary.json.tmp"
-    tmp.write_text(json.dumps(summary, indent=2))
-    os.replace(tmp, run_dir / "summary.json")
+    atomic_write_json(run_dir / "summary.json", summary)
     print(f"detector saved to {out}; " + ", ".join(f"{k}={v}" for k, v in summary.items() if k != "detector"))
     torch.set_grad_enabled(True)
     return out

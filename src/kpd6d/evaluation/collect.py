@@ -22,7 +22,7 @@ import os
 from pathlib import Path
 from typing import Any
 
-from kpd6d.data.bop_io import atomic_write_text
+from kpd6d.io import atomic_write_text
 
 __all__ = ["collect", "find_runs"]
 

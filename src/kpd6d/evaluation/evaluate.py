@@ -21,10 +21,10 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd6d.data import atomic_write_image, atomic_write_json
 from kpd6d.evaluation.errors import add_error, adds_error, proj2d_error
 from kpd6d.evaluation.recall import add_s_accuracy, auc, proj2d_accuracy, recall_at
 from kpd6d.evaluation.results_io import PoseResult, write_bop_results
+from kpd6d.io import atomic_write_image, atomic_write_json
 
 __all__ = ["ADD_THRESHOLDS", "PX_THRESHOLDS", "compute_metrics", "eval_instances", "evaluate", "match_predictions"]
 
@@ -147,8 +147,6 @@ def _check_resumable(out_dir: Path, run_info: dict | None, oracle: bool) -> None
     (``run_info`` minus the device): rerunning with another solver, top-l, refinement or checkpoint
     into the same folder is an error that names the differences, never a silent mix."""
     import json
-
-    from kpd6d.data import atomic_write_json
 
     settings = json.loads(json.dumps({k: v for k, v in (run_info or {}).items() if k != "device"} | {"oracle": oracle},
                                      default=str))

@@ -10,7 +10,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd6d.data import atomic_write_bytes, atomic_write_text
+from kpd6d.io import atomic_write_bytes, atomic_write_text
 
 __all__ = ["plot_curves", "save_figure", "write_report_md"]
 

@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd6d.data import atomic_write_text
+from kpd6d.io import atomic_write_text
 
 __all__ = ["HEADER", "PoseResult", "ResultsFormatError", "read_bop_results", "write_bop_results"]
 

@@ -118,7 +118,7 @@ def write_overviews(models: Sequence, points: dict[int, np.ndarray], out_dir: st
     """``<out_dir>/obj_XXXXXX.png`` per model: :func:`render_overview` of its ``points``; returns the paths."""
     from tqdm.auto import tqdm
 
-    from kpd6d.data.bop_io import atomic_write_image
+    from kpd6d.io import atomic_write_image
     from kpd6d.render import Renderer
 
     size = int(image_size)

@@ -98,7 +98,7 @@ def save_keypoints(path: str | os.PathLike, keypoints: dict[int, Any], *, design
         objects[str(int(oid))] = entry
     doc = {"format": FORMAT, "version": VERSION, "designator": designator,
            "params": _jsonable(dict(params or {})), "objects": objects}
-    from kpd6d.data import atomic_write_text
+    from kpd6d.io import atomic_write_text
 
     text = json.dumps(doc, indent=1)
     # one line per point: collapse the innermost numeric lists
@@ -109,7 +109,7 @@ def save_keypoints(path: str | os.PathLike, keypoints: dict[int, Any], *, design
 
 def read_keypoint_file(path: str | os.PathLike) -> KeypointFile:
     """Read a keypoint file with its provenance; errors name the file and the offending field."""
-    from kpd6d.data import read_json
+    from kpd6d.io import read_json
 
     path = Path(path)
     doc = read_json(path, what="keypoint file", error=KeypointFileError)

@@ -57,7 +57,7 @@ def _iou_xywh(a: np.ndarray, b: np.ndarray) -> np.ndarray:
 def load_detection_boxes(path: str | os.PathLike) -> dict[tuple[int, int], list[tuple[int, np.ndarray, float]]]:
     """BOP detection JSON (list of ``{scene_id, image_id, category_id, bbox (xywh), score}``) →
     ``{(scene_id, im_id): [(obj_id, box, score), ...]}``."""
-    from kpd6d.data import read_json
+    from kpd6d.io import read_json
 
     p = Path(path)
     entries = read_json(p, what="detections file", error=ValueError)

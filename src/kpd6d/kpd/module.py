@@ -19,9 +19,9 @@ import numpy as np
 import pytorch_lightning as pl
 import torch
 
-from kpd6d.config import to_plain
 from kpd6d.finetune import apply_freeze_bn, finetune_config, param_groups
 from kpd6d.geometry import affine_apply, box_to_crop_affine, invert_affine
+from kpd6d.io import to_plain
 from kpd6d.kpd.heads import KeypointNet
 from kpd6d.kpd.heatmaps import crop_to_heatmap, gaussian_heatmaps, heatmap_to_crop
 

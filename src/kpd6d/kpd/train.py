@@ -16,7 +16,8 @@ import json
 import time
 from pathlib import Path
 
-from kpd6d.config import run_dir_of, to_plain
+from kpd6d.config import run_dir_of
+from kpd6d.io import to_plain
 
 __all__ = ["build_datasets", "generate_if_needed", "scheduler_config", "train_kpd"]
 
@@ -90,8 +91,8 @@ def train_kpd(cfg) -> Path:
     from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint, TQDMProgressBar
     from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
 
-    from kpd6d.data import atomic_write_json
     from kpd6d.ema import ema_callback
+    from kpd6d.io import atomic_write_json
     from kpd6d.kpd.module import KPDModule
 
     t0 = time.time()

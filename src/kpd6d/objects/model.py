@@ -181,7 +181,7 @@ def _diameter(v: np.ndarray) -> float:
 
 def load_models_info(path: str | os.PathLike) -> dict[int, dict]:
     """Read BOP ``models_info.json`` into ``{obj_id: entry}``; errors name the file and field."""
-    from kpd6d.data import read_json
+    from kpd6d.io import read_json
 
     path = Path(path)
     raw = read_json(path, what="models_info.json", error=ModelError)

@@ -21,18 +21,15 @@ import numpy as np
 
 from kpd6d.data.bop_io import (
     BopFormatError,
-    atomic_write_bytes,
-    atomic_write_image,
-    atomic_write_json,
     load_scene_camera,
     load_scene_gt,
     load_scene_gt_info,
-    read_json,
     save_camera,
     save_scene_camera,
     save_scene_gt,
     save_scene_gt_info,
 )
+from kpd6d.io import atomic_write_bytes, atomic_write_image, atomic_write_json, read_json
 from kpd6d.synth.config import SynthConfig
 
 __all__ = ["generate_dataset", "image_rng", "resolve_workers"]
@@ -251,7 +248,7 @@ class _SceneRecords:
 def _check_info(root: Path, split: str, models_part: dict, split_part: dict) -> dict:
     """Merge this run's settings into dataset_info.json; refuse to mix different settings."""
     path = root / INFO_FILE
-    info = read_json(path, what=INFO_FILE) if path.is_file() else {}
+    info = read_json(path, what=INFO_FILE, error=BopFormatError) if path.is_file() else {}
     if info.get("models") not in (None, models_part):
         diff = sorted(k for k in set(models_part) | set(info["models"]) if info["models"].get(k) != models_part.get(k))
         raise ValueError(

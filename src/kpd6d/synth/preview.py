@@ -29,7 +29,8 @@ def draw_frame(frame, models_by_id: dict, keypoints: dict | None = None, draw_bo
 
 
 def main(argv: list[str] | None = None) -> int:
-    from kpd6d.data import BopDataset, atomic_write_image
+    from kpd6d.data import BopDataset
+    from kpd6d.io import atomic_write_image
 
     ap = argparse.ArgumentParser(prog="python -m kpd6d.synth.preview", description=__doc__)
     ap.add_argument("root")

@@ -9,7 +9,7 @@ Layers, lowest first (a "unit" is a top-level module ``kpd6d/X.py`` or a subpack
     L2  keypoints
     L3  data, synth                              BOP datasets; the generator that writes them
     L4  evaluation, detection, kpd               metrics; the two trained stages
-    L5  pipeline, benchmarks, workflow           stages put together
+    L5  pipeline, predict, benchmarks, workflow  stages put together
     L6  cli                                      Hydra entry points, imported by no library code
 
 Rules:
@@ -18,7 +18,7 @@ Rules:
 * it may import another unit of its OWN layer only where ``SAME_LAYER`` lists that edge:
   ``config -> io`` (``to_plain`` lives with the file writers), ``synth -> data`` (the generator writes
   BOP files), ``kpd -> evaluation`` (the KPD's validation pose metrics), ``workflow -> pipeline``
-  (``run_evaluation`` builds the pose pipeline);
+  (``run_evaluation`` builds the pose pipeline), ``predict -> pipeline`` (prediction on images runs it);
 * there is no import cycle between units (checked on its own, so an allowance can never hide one);
 * nothing outside ``kpd6d/cli`` imports ``kpd6d.cli``;
 * ``kpd6d/__init__.py`` is the package's face and may re-export from any unit, but only lazily
@@ -50,10 +50,10 @@ LAYERS: list[tuple[str, ...]] = [
     ("keypoints",),
     ("data", "synth"),
     ("evaluation", "detection", "kpd"),
-    ("pipeline", "benchmarks", "workflow"),
+    ("pipeline", "predict", "benchmarks", "workflow"),
     ("cli",),
 ]
-SAME_LAYER = {("config", "io"), ("synth", "data"), ("kpd", "evaluation"), ("workflow", "pipeline")}
+SAME_LAYER = {("config", "io"), ("synth", "data"), ("kpd", "evaluation"), ("workflow", "pipeline"), ("predict", "pipeline")}
 ROOT = ""  # the unit of kpd6d/__init__.py
 ROOT_NAMES_ALLOWED = {"__version__"}
 

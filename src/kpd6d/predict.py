@@ -20,8 +20,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from kpd6d.io import atomic_write_image, atomic_write_text
 from kpd6d.geometry import LINEMOD_K
+from kpd6d.io import atomic_write_image, atomic_write_text
 from kpd6d.visualize import draw_predictions
 
 __all__ = ["IMAGE_EXTS", "VIDEO_EXTS", "corners_from_kpd", "load_intrinsics", "predict_from_config", "predict_inputs"]

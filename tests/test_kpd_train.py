@@ -37,7 +37,7 @@ def test_train_kpd_generates_data_trains_and_writes_outputs(tmp_path):
     last = run / "checkpoints" / "last.ckpt"
     assert last.is_file() and (run / "checkpoints" / "best.ckpt").is_file()
     m = KPDModule.load_checkpoint(last)
-    assert m.obj_ids == [2] and m.hparams.input_size == 64 and m.hparams.backbone["name"] == "tiny"
+    assert m.obj_ids == [2] and m.codec.input_size == 64 and m.hparams.backbone["name"] == "tiny"
 
     # a rerun in the same run directory resumes from last.ckpt and trains one more epoch
     train_kpd(_cfg(tmp_path, "stage.kpd.trainer.max_epochs=2"))

@@ -108,3 +108,33 @@ def test_config_round_trip_and_legacy_fields():
         codec_config({"name": "heatmap"}, sigma=2.0)
     with pytest.raises(TypeError, match="unknown codec field"):
         codec_config(sigmaa=2.0)
+
+
+def _compose(name, overrides):
+    from hydra import compose, initialize_config_dir
+
+    from kpd6d.paths import config_dir
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        return compose(config_name=name, overrides=overrides)
+
+
+def test_one_codec_node_in_the_stage_config():
+    cfg = _compose("train", ["kpd@stage.kpd=cpu_small", "decoder@stage.kpd.codec.decoder=soft_argmax",
+                             "stage.kpd.codec.sigma=3.0"])
+    codec = build_codec(cfg.stage.kpd.codec)
+    assert codec.config() == {"name": "heatmap", "input_size": 96, "out_stride": 4, "sigma": 3.0, "crop_scale": 1.25,
+                              "decoder": {"name": "soft_argmax", "temperature": 1.0, "window": 5}}
+    # the transition aliases kpd/train.py reads follow the codec node
+    k = cfg.stage.kpd
+    assert (k.input_size, k.out_stride, k.sigma, k.crop_scale) == (96, 4, 3.0, 1.25)
+    assert cfg.stage.decoder == cfg.stage.kpd.codec.decoder
+    run = _compose("run", ["experiment=linemod"])
+    assert run.kpd_stage.kpd.codec.input_size == 256 and run.kpd_stage.decoder.name == "subpixel"
+
+
+def test_old_decoder_override_names_the_new_spelling():
+    from hydra.errors import ConfigCompositionException
+
+    with pytest.raises(ConfigCompositionException, match=r"decoder@stage\.kpd\.codec\.decoder"):
+        _compose("train", ["decoder@stage.decoder=soft_argmax"])

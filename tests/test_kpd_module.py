@@ -54,7 +54,7 @@ def _scene(module, n=4, seed=0, size=(160, 120)):
         for j, (u, v) in enumerate(uv):
             cv2.circle(img, (round(u), round(v)), 2, (40 * j % 255, 255 - 30 * j, 120 + 20 * j), -1)
         box = bbox_from_points(uv)
-        A = box_to_crop_affine(box, 64, scale=module.hparams.crop_scale)
+        A = box_to_crop_affine(box, 64, scale=module.codec.crop_scale)
         crop = cv2.warpAffine(img, A, (64, 64), flags=cv2.INTER_LINEAR)
         images.append(img)
         items.append({
@@ -142,7 +142,7 @@ def test_fit_validate_checkpoint_round_trip(tmp_path):
     module.eval()
     assert loaded.obj_ids == [3, 7]
     np.testing.assert_allclose(loaded.keypoints_3d[7], module.keypoints_3d[7])
-    assert loaded.hparams.input_size == 64 and loaded.hparams.decoder == {"name": "subpixel"}
+    assert loaded.codec.input_size == 64 and loaded.hparams.codec["decoder"] == {"name": "subpixel"}
     images = torch.rand(2, 3, 120, 160)
     boxes = torch.tensor([[40.0, 30.0, 50.0, 40.0], [10.0, 20.0, 70.0, 60.0], [80.0, 50.0, 30.0, 30.0]])
     args = (images, boxes, torch.tensor([0, 1, 1]), torch.tensor([3, 7, 3]))
@@ -162,7 +162,7 @@ def test_kornia_inference_crop_matches_cv2_training_crop():
     img = rng.integers(0, 256, (120, 160, 3)).astype(np.uint8)
     img = cv2.GaussianBlur(img, (0, 0), 2.0)  # smooth, so interpolation differences stay small
     box = np.array([37.3, 22.9, 61.2, 48.4])
-    A = box_to_crop_affine(box, 64, scale=module.hparams.crop_scale)
+    A = box_to_crop_affine(box, 64, scale=module.codec.crop_scale)
     ref = cv2.warpAffine(img.astype(np.float32), A, (64, 64), flags=cv2.INTER_LINEAR)
     from kornia.geometry.transform import warp_affine
 

@@ -14,7 +14,7 @@ def _cfg(tmp_path, *extra):
     with initialize_config_dir(str(config_dir()), version_base="1.3"):
         cfg = compose("train", overrides=[
             "stage=kpd", "backbone@stage.backbone=tiny", "stage.kpd.head.deconv_channels=16",
-            "stage.kpd.input_size=64", "stage.kpd.batch_size=4", "stage.kpd.num_workers=0",
+            "stage.kpd.codec.input_size=64", "stage.kpd.batch_size=4", "stage.kpd.num_workers=0",
             "stage.kpd.generate.num_train=6", "stage.kpd.generate.num_val=3", "stage.kpd.generate.obj_ids=[2]",
             "stage.kpd.trainer.max_epochs=1", "stage.kpd.trainer.accelerator=cpu", "stage.kpd.trainer.devices=1",
             "stage.kpd.trainer.log_every_n_steps=1", f"+run_dir={tmp_path}", *extra,
@@ -37,7 +37,7 @@ def test_train_kpd_generates_data_trains_and_writes_outputs(tmp_path):
     last = run / "checkpoints" / "last.ckpt"
     assert last.is_file() and (run / "checkpoints" / "best.ckpt").is_file()
     m = KPDModule.load_checkpoint(last)
-    assert m.obj_ids == [2] and m.hparams.input_size == 64 and m.hparams.backbone["name"] == "tiny"
+    assert m.obj_ids == [2] and m.codec.input_size == 64 and m.hparams.backbone["name"] == "tiny"
 
     # a rerun in the same run directory resumes from last.ckpt and trains one more epoch
     train_kpd(_cfg(tmp_path, "stage.kpd.trainer.max_epochs=2"))

@@ -210,7 +210,7 @@ def test_broken_plugin_names_itself_and_is_retried(monkeypatch):
         reg.load_plugins()  # still loud on the next attempt
 
 
-def test_the_six_registries_exist():
-    assert set(REGISTRIES) == {"designator", "detector", "backbone", "decoder", "pnp", "symmetry"}
+def test_the_seven_registries_exist():
+    assert set(REGISTRIES) == {"designator", "detector", "backbone", "decoder", "codec", "pnp", "symmetry"}
     assert REGISTRIES["pnp"] is PNP_SOLVERS
     assert {"epnp", "iterative", "sqpnp", "epnp_ransac", "dlt", "weighted_lm"} <= set(PNP_SOLVERS.names())

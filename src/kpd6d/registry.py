@@ -1,4 +1,4 @@
-"""Plugin registries: one small generic :class:`Registry` and the six registries of the library.
+"""Plugin registries: one small generic :class:`Registry` and the seven registries of the library.
 
 A registry maps a name to a factory. ``REGISTRY.build(name, **params)`` calls the factory; an
 unknown name raises :class:`UnknownNameError` listing the known names. Each Hydra config group in
@@ -21,6 +21,7 @@ from typing import Any
 
 __all__ = [
     "BACKBONES",
+    "CODECS",
     "DECODERS",
     "DESIGNATORS",
     "DETECTORS",
@@ -155,6 +156,7 @@ DESIGNATORS = Registry("designator", ("kpd6d.keypoints.designators",))
 DETECTORS = Registry("detector", ("kpd6d.detection.detectors",))
 BACKBONES = Registry("backbone", ("kpd6d.kpd.backbones",))
 DECODERS = Registry("decoder", ("kpd6d.kpd.decoders",))
+CODECS = Registry("codec", ("kpd6d.kpd.codec",))
 PNP_SOLVERS = Registry("PnP solver", ("kpd6d.pnp",))
 SYMMETRIES = Registry("symmetry handler", ("kpd6d.symmetry",))
 
@@ -163,6 +165,7 @@ REGISTRIES: dict[str, Registry] = {
     "detector": DETECTORS,
     "backbone": BACKBONES,
     "decoder": DECODERS,
+    "codec": CODECS,
     "pnp": PNP_SOLVERS,
     "symmetry": SYMMETRIES,
 }

@@ -62,10 +62,8 @@ def main(argv: list[str]) -> int:
     ckpt = summary["best_checkpoint"] or summary["last_checkpoint"]
     module = KPDModule.load_checkpoint(ckpt)
     k = cfg.stage.kpd
-    test = KPDCropDataset(data, split="test", keypoints=module.keypoints_3d, input_size=module.hparams.input_size,
-                          out_stride=module.hparams.out_stride, sigma=module.hparams.sigma,
-                          crop_scale=module.hparams.crop_scale, box_source="visib", visibility=k.visibility,
-                          min_visib_fract=float(k.min_visib_fract))
+    test = KPDCropDataset(data, split="test", keypoints=module.keypoints_3d, codec=module.codec, box_source="visib",
+                          visibility=k.visibility, min_visib_fract=float(k.min_visib_fract))
     loader = torch.utils.data.DataLoader(test, batch_size=32, num_workers=int(k.num_workers))
     trainer = pl.Trainer(accelerator=k.trainer.accelerator, devices=1, logger=False, enable_checkpointing=False,
                          enable_model_summary=False)

@@ -59,7 +59,7 @@ def build(config: str, num_keypoints: int, num_objects: int, device):
     obj_ids = list(range(1, num_objects + 1))
     kpd = KPDModule(obj_ids=obj_ids, keypoints_3d=[rng.uniform(-50, 50, (num_keypoints, 3)) for _ in obj_ids],
                     diameters=[150.0] * num_objects, backbone=c["backbone"], head=c["head"],
-                    input_size=c["input_size"], out_stride=4).to(device).eval()
+                    codec={"input_size": c["input_size"], "out_stride": 4}).to(device).eval()
     det = build_detector(**{**c["detector"], "obj_ids": obj_ids}).to(device).eval()
     return det, kpd
 
@@ -67,9 +67,8 @@ def build(config: str, num_keypoints: int, num_objects: int, device):
 @torch.no_grad()
 def time_batch(det, kpd, pnp, images, boxes, image_index, obj_ids, K, top_l, device) -> dict[str, float]:
     """Seconds per stage for one batch."""
-    from kornia.geometry.transform import warp_affine
-
-    from kpd6d.geometry import affine_apply, box_to_crop_affine, invert_affine
+    from kpd6d.geometry import affine_apply, invert_affine
+    from kpd6d.kpd.crops import inference_crops
     from kpd6d.kpd.select import top_l as select_top_l
 
     t = {}
@@ -78,9 +77,7 @@ def time_batch(det, kpd, pnp, images, boxes, image_index, obj_ids, K, top_l, dev
     det.predict(images)
     _sync(device)
     t1 = time.perf_counter()
-    S = kpd.hparams.input_size
-    A = box_to_crop_affine(boxes.double(), S, scale=kpd.hparams.crop_scale)
-    crops = warp_affine(images[image_index], A.float(), (S, S), align_corners=True)
+    crops, A = inference_crops(images, boxes, image_index, kpd.codec)
     _sync(device)
     t2 = time.perf_counter()
     heat = kpd(crops, kpd.obj_indices(obj_ids))

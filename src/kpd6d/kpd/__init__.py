@@ -1,7 +1,9 @@
 """Keypoint-detector (KPD) stage: crops → heatmap network → decoded keypoints + confidences → top-l.
 
 Modules: :mod:`~kpd6d.kpd.heatmaps` (Gaussian targets, stride mapping), :mod:`~kpd6d.kpd.decoders`
-(``DECODERS``), :mod:`~kpd6d.kpd.backbones` (``BACKBONES``), :mod:`~kpd6d.kpd.heads` (heads and the
+(``DECODERS``), :mod:`~kpd6d.kpd.codec` (``CODECS``: the heatmap codec — targets, decoding, crop
+size — that the crops, the module and inference share), :mod:`~kpd6d.kpd.checkpoint` (the KPD
+checkpoint schema), :mod:`~kpd6d.kpd.backbones` (``BACKBONES``), :mod:`~kpd6d.kpd.heads` (heads and the
 network), :mod:`~kpd6d.kpd.crops` (crop dataset over BOP data), :mod:`~kpd6d.kpd.box_augment`
 (``jitter`` / ``pgpg``), :mod:`~kpd6d.kpd.augment` (kornia batch augmentation),
 :mod:`~kpd6d.kpd.select` (top-l + PnP), :mod:`~kpd6d.kpd.module` (``KPDModule``),

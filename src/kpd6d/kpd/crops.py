@@ -1,10 +1,13 @@
 """KPD training / validation crops over a BOP dataset (generated or real).
 
 For every annotated instance: a square crop around its box (GT ``bbox_visib`` / ``bbox_obj`` or a
-detector's box), enlarged by ``crop_scale``, resized to ``input_size`` with ``cv2.warpAffine`` and
-:func:`kpd6d.geometry.box_to_crop_affine`; the designated keypoints projected with the (symmetry-
-canonicalised) GT pose and mapped into the crop; Gaussian target heatmaps at ``out_stride`` for all
-keypoints (visible or not) and per-keypoint visibility flags.
+detector's box), enlarged by the codec's ``crop_scale``, resized to its ``input_size`` with
+``cv2.warpAffine`` and :meth:`kpd6d.kpd.codec.HeatmapCodec.crop_affine`; the designated keypoints
+projected with the (symmetry-canonicalised) GT pose and mapped into the crop; the codec's target
+heatmaps for all keypoints (visible or not) and per-keypoint visibility flags.
+
+:func:`inference_crops` makes the same crops of a batch of image tensors on their device (kornia's
+``warp_affine``), as the KPD's inference does.
 
 Visibility (``visibility=``): ``crop`` — inside the crop; ``mask`` — also on the instance's visible
 mask (catches occlusion by other objects, not self-occlusion); ``depth`` — also not behind the scene
@@ -24,10 +27,11 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from kpd6d.geometry import affine_apply, box_to_crop_affine, project_points
-from kpd6d.kpd.heatmaps import crop_to_heatmap, gaussian_heatmaps
+from kpd6d.geometry import affine_apply, project_points
+from kpd6d.kpd.codec import build_codec
 
-__all__ = ["BOX_SOURCES", "VISIBILITY_MODES", "KPDCropDataset", "canonicalizer_for", "load_detection_boxes"]
+__all__ = ["BOX_SOURCES", "VISIBILITY_MODES", "KPDCropDataset", "canonicalizer_for", "inference_crops",
+           "load_detection_boxes"]
 
 BOX_SOURCES = ("visib", "obj", "detections")
 VISIBILITY_MODES = ("auto", "depth", "mask", "crop")
@@ -83,23 +87,28 @@ class KPDCropDataset(Dataset):
     (when ``return_heatmaps``); ``affine`` (2, 3) image → crop; ``box`` (4,) the box cropped
     (after box augmentation); ``K`` (3, 3); ``R``, ``t`` (canonicalised GT pose); ``obj_id``;
     ``obj_index`` (index into ``obj_ids``).
+
+    ``codec`` (a :class:`~kpd6d.kpd.codec.HeatmapCodec` or its config) sets the crop size, crop scale
+    and targets; the separate ``input_size`` / ``out_stride`` / ``sigma`` / ``crop_scale`` (older
+    spelling; None = the codec default) map onto one.
     """
 
     def __init__(self, root: str | os.PathLike | Any, split: str = "train", obj_ids: Sequence[int] | None = None,
-                 keypoints: Mapping[int, np.ndarray] | None = None, input_size: int = 256, out_stride: int = 4,
-                 sigma: float = 2.0, crop_scale: float = 1.25, box_source: str = "visib",
+                 keypoints: Mapping[int, np.ndarray] | None = None, input_size: int | None = None,
+                 out_stride: int | None = None, sigma: float | None = None, crop_scale: float | None = None,
+                 box_source: str = "visib",
                  detections: str | os.PathLike | None = None, detection_iou: float = 0.5,
                  box_augment: Callable | None = None, min_visib_fract: float = 0.1,
                  visibility: str = "auto", return_heatmaps: bool = True, max_instances: int | None = None,
-                 models: Sequence | None = None, image_cache_mb: float = 0.0) -> None:
+                 models: Sequence | None = None, image_cache_mb: float = 0.0, codec: Any = None) -> None:
         from kpd6d.data import BopDataset
 
         if box_source not in BOX_SOURCES:
             raise ValueError(f"box_source {box_source!r} unknown; known: {', '.join(BOX_SOURCES)}")
         if visibility not in VISIBILITY_MODES:
             raise ValueError(f"visibility {visibility!r} unknown; known: {', '.join(VISIBILITY_MODES)}")
-        if input_size % out_stride:
-            raise ValueError(f"input_size {input_size} must be a multiple of out_stride {out_stride}")
+        self.codec = build_codec(codec, what="KPDCropDataset", input_size=input_size, out_stride=out_stride,
+                                 sigma=sigma, crop_scale=crop_scale)
         if box_source == "detections" and detections is None:
             raise ValueError("box_source='detections' needs a detections file (BOP detection JSON)")
         self.ds = root if isinstance(root, BopDataset) else BopDataset(root, split=split, obj_ids=obj_ids)
@@ -117,8 +126,7 @@ class KPDCropDataset(Dataset):
         models = list(models) if models is not None else self.ds.load_models(self.obj_ids)
         self.models = {m.obj_id: m for m in models if m.obj_id in self.obj_ids}
         self._canon = {o: canonicalizer_for(m) for o, m in self.models.items()}
-        self.input_size, self.out_stride, self.sigma = int(input_size), int(out_stride), float(sigma)
-        self.crop_scale, self.box_source = float(crop_scale), box_source
+        self.box_source = box_source
         self.box_augment = box_augment
         self.visibility = visibility
         self.return_heatmaps = return_heatmaps
@@ -145,6 +153,23 @@ class KPDCropDataset(Dataset):
 
     def __len__(self) -> int:
         return len(self.items)
+
+    # the codec's fields, as the dataset exposed them before the codec
+    @property
+    def input_size(self) -> int:
+        return self.codec.input_size
+
+    @property
+    def out_stride(self) -> int:
+        return self.codec.out_stride
+
+    @property
+    def sigma(self) -> float:
+        return self.codec.sigma
+
+    @property
+    def crop_scale(self) -> float:
+        return self.codec.crop_scale
 
     # -- pieces -----------------------------------------------------------------------------------
     def _rgb(self, fi: int) -> np.ndarray:
@@ -206,7 +231,7 @@ class KPDCropDataset(Dataset):
             rng = np.random.default_rng(int(torch.randint(0, 2**31 - 1, ()).item()))
             box = self.box_augment(box, rng, obj_id=inst.obj_id)
         S = self.input_size
-        A = box_to_crop_affine(box, S, scale=self.crop_scale)
+        A = self.codec.crop_affine(box)
         rgb = self._rgb(fi)
         crop = cv2.warpAffine(rgb, A, (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         R, t = self._canon[inst.obj_id](np.asarray(inst.R, dtype=np.float64), np.asarray(inst.t, dtype=np.float64))
@@ -229,6 +254,24 @@ class KPDCropDataset(Dataset):
             "obj_index": self.obj_ids.index(int(inst.obj_id)),
         }
         if self.return_heatmaps:
-            item["heatmaps"] = gaussian_heatmaps(crop_to_heatmap(item["keypoints"], self.out_stride),
-                                                 S // self.out_stride, self.sigma)
+            item["heatmaps"] = self.codec.encode(item["keypoints"])[0]
         return item
+
+
+def inference_crops(images: torch.Tensor, boxes, image_index, codec) -> tuple[torch.Tensor, torch.Tensor]:
+    """The codec's crops of boxes over a batch of images, on the images' device.
+
+    ``images`` (B, 3, H, W) float; ``boxes`` (N, 4) xywh px; ``image_index`` (N,) which image each box
+    is in. Returns ``crops`` (N, 3, S, S) (float32, kornia ``warp_affine``: the same affine and
+    sampling as the cv2 training crops) and the image → crop affines ``A`` (N, 2, 3) float64; map
+    crop keypoints back with ``affine_apply(invert_affine(A), uv)``.
+    """
+    from kornia.geometry.transform import warp_affine
+
+    dev = images.device
+    boxes = torch.as_tensor(boxes, dtype=torch.float64, device=dev).reshape(-1, 4)
+    image_index = torch.as_tensor(image_index, dtype=torch.long, device=dev).reshape(-1)
+    S = codec.input_size
+    A = codec.crop_affine(boxes)
+    crops = warp_affine(images[image_index].float(), A.float(), (S, S), align_corners=True)
+    return crops, A

@@ -1,0 +1,110 @@
+"""The KPD checkpoint schema (kpd6d.kpd.checkpoint): the codec record, checkpoints from before the
+codec, and the validation pose metrics of kpd6d.evaluation.kpd_metrics."""
+
+import numpy as np
+import pytest
+import torch
+
+from kpd6d.evaluation.kpd_metrics import keypoint_error_px, pose_metrics
+from kpd6d.geometry import LINEMOD_K, random_rotation
+from kpd6d.kpd.checkpoint import read_kpd_checkpoint, upgrade_hparams
+from kpd6d.kpd.module import KPDModule
+from kpd6d.pnp.base import BatchPoseEstimate
+
+pytestmark = pytest.mark.usefixtures("one_torch_thread")
+
+
+def _module(**kw):
+    rng = np.random.default_rng(0)
+    cfg = dict(obj_ids=[3, 7], keypoints_3d=[rng.uniform(-40, 40, (6, 3)) for _ in range(2)], diameters=[120.0, 90.0],
+               backbone={"name": "tiny", "width": 16}, head={"name": "deconv", "deconv_channels": 32})
+    cfg.update(kw)
+    return KPDModule(**cfg)
+
+
+def _save(module, path, hparams=None):
+    torch.save({"state_dict": module.state_dict(), "hyper_parameters": dict(hparams or module.hparams)}, path)
+    return path
+
+
+def _predict(module):
+    images = torch.rand(2, 3, 120, 160, generator=torch.Generator().manual_seed(0))
+    boxes = torch.tensor([[40.0, 30.0, 50.0, 40.0], [10.0, 20.0, 70.0, 60.0]])
+    return module.eval().predict_keypoints(images, boxes, torch.tensor([0, 1]), torch.tensor([3, 7]))
+
+
+def test_checkpoint_records_one_codec_node(tmp_path):
+    torch.manual_seed(0)
+    m = _module(codec={"input_size": 64, "sigma": 1.5, "crop_scale": 1.5, "decoder": {"name": "soft_argmax"}})
+    hp = read_kpd_checkpoint(_save(m, tmp_path / "new.ckpt"))["hyper_parameters"]
+    assert hp["codec"] == {"name": "heatmap", "input_size": 64, "out_stride": 4, "sigma": 1.5, "crop_scale": 1.5,
+                           "decoder": {"name": "soft_argmax"}}
+    assert not {"input_size", "out_stride", "sigma", "crop_scale", "decoder"} & set(hp)
+    loaded = KPDModule.load_checkpoint(tmp_path / "new.ckpt")
+    assert loaded.codec.config() == m.codec.config() and loaded.heatmap_size == 16
+    kp_a, c_a = _predict(m)
+    kp_b, c_b = _predict(loaded)
+    assert torch.equal(kp_a, kp_b) and torch.equal(c_a, c_b)
+
+
+def test_checkpoint_from_before_the_codec_loads(tmp_path):
+    """hyper_parameters with the separate input_size / out_stride / sigma / crop_scale / decoder fields
+    (as KPD checkpoints were written before the codec) map onto the same codec and predictions."""
+    torch.manual_seed(0)
+    m = _module(input_size=64, out_stride=4, sigma=1.5, crop_scale=1.5, decoder={"name": "subpixel", "method": "taylor"})
+    old = {k: v for k, v in m.hparams.items() if k != "codec"}
+    old.update(input_size=64, out_stride=4, sigma=1.5, crop_scale=1.5, decoder={"name": "subpixel", "method": "taylor"})
+    assert upgrade_hparams(old)["codec"] == m.hparams.codec
+    loaded = KPDModule.load_checkpoint(_save(m, tmp_path / "old.ckpt", old))
+    assert loaded.codec.config() == {"name": "heatmap", "input_size": 64, "out_stride": 4, "sigma": 1.5,
+                                     "crop_scale": 1.5, "decoder": {"name": "subpixel", "method": "taylor"}}
+    kp_a, c_a = _predict(m)
+    kp_b, c_b = _predict(loaded)
+    assert torch.equal(kp_a, kp_b) and torch.equal(c_a, c_b)
+
+
+def test_codec_and_separate_fields_together_is_an_error():
+    with pytest.raises(ValueError, match="not both"):
+        _module(codec={"input_size": 64}, sigma=2.0)
+    with pytest.raises(ValueError, match="multiple of out_stride"):
+        _module(input_size=66)
+
+
+def test_read_kpd_checkpoint_names_what_is_wrong(tmp_path):
+    (tmp_path / "empty.ckpt").write_bytes(b"")
+    with pytest.raises(ValueError, match="empty"):
+        read_kpd_checkpoint(tmp_path / "empty.ckpt")
+    torch.save({"kpd6d_detector": {}}, tmp_path / "det.pt")
+    with pytest.raises(ValueError, match="detector checkpoint"):
+        read_kpd_checkpoint(tmp_path / "det.pt")
+    torch.save({"state_dict": {}}, tmp_path / "other.ckpt")
+    with pytest.raises(ValueError, match="not a kpd6d KPD checkpoint"):
+        read_kpd_checkpoint(tmp_path / "other.ckpt")
+
+
+def test_pose_metrics_count_hits_and_failures():
+    rng = np.random.default_rng(1)
+    pts = [rng.uniform(-40, 40, (30, 3)) for _ in range(3)]
+    R = np.stack([random_rotation(rng) for _ in range(3)])
+    t = np.tile([0.0, 0.0, 800.0], (3, 1))
+    K = np.broadcast_to(LINEMOD_K, (3, 3, 3))
+    t_est = t.copy()
+    t_est[2, 0] += 50.0  # instance 2: 50 mm off (a miss on both), instance 1: PnP failed
+    poses = BatchPoseEstimate(R=R, t=t_est, ok=np.array([True, False, True]), inliers=np.ones((3, 30), bool),
+                              reasons=["", "degenerate", ""])
+    m = pose_metrics(poses, R, t, K, pts, [False, True, False], [100.0, 100.0, 100.0])
+    assert m == {"proj2d_acc_5px": pytest.approx(1 / 3), "add_acc_0.1d": pytest.approx(1 / 3),
+                 "pnp_fail_rate": pytest.approx(1 / 3)}
+    # 9 mm off: within 0.1 d (10 mm) for ADD but well over 5 px in projection at 800 mm
+    t_est[2, 0] = 9.0
+    m = pose_metrics(poses, R, t, K, pts, [False, True, False], [100.0, 100.0, 100.0])
+    assert m["add_acc_0.1d"] == pytest.approx(2 / 3) and m["proj2d_acc_5px"] == pytest.approx(1 / 3)
+
+
+def test_keypoint_error_px_maps_crop_keypoints_back():
+    A = torch.tensor([[[2.0, 0.0, -10.0], [0.0, 2.0, -20.0]]], dtype=torch.float64)  # crop = 2 * image - (10, 20)
+    img = torch.tensor([[[10.0, 15.0], [30.0, 40.0]]], dtype=torch.float64)
+    crop = 2 * img - torch.tensor([10.0, 20.0], dtype=torch.float64)
+    err, back = keypoint_error_px(crop + torch.tensor([6.0, 8.0], dtype=torch.float64), A, img)
+    assert err.item() == pytest.approx(5.0)  # (6, 8) crop px = (3, 4) image px
+    np.testing.assert_allclose(back.numpy(), (img + torch.tensor([3.0, 4.0], dtype=torch.float64)).numpy())

@@ -240,6 +240,7 @@ def build_trainer(run_dir: str | Path, trainer: Mapping[str, Any] | None, *, mon
     run_dir = Path(run_dir)
     if mode not in ("max", "min"):
         raise ValueError(f"build_trainer: mode must be 'max' or 'min', got {mode!r}")
+    kwargs = {k: v for k, v in (to_plain(trainer) or {}).items() if v is not None}
     callbacks = [
         *ema_callback(ema_decay),  # checkpoints then hold the weight average
         ModelCheckpoint(dirpath=run_dir / CHECKPOINT_DIR, filename="best", monitor=monitor, mode=mode, save_top_k=1),
@@ -247,13 +248,13 @@ def build_trainer(run_dir: str | Path, trainer: Mapping[str, Any] | None, *, mon
         # follows a top-k save): the resume point
         ModelCheckpoint(dirpath=run_dir / CHECKPOINT_DIR, filename="last", monitor=None, save_top_k=1,
                         enable_version_counter=False),
-        TQDMProgressBar(refresh_rate=max(1, int(progress_refresh or 1))),
         LearningRateMonitor(logging_interval="epoch"),
     ]
+    if kwargs.get("enable_progress_bar", True):
+        callbacks.append(TQDMProgressBar(refresh_rate=max(1, int(progress_refresh or 1))))
     version = None if log_versions else ""
     loggers = [TensorBoardLogger(str(run_dir), name="tb", version=version),
                CSVLogger(str(run_dir), name="csv", version=version)]
-    kwargs = {k: v for k, v in (to_plain(trainer) or {}).items() if v is not None}
     return pl.Trainer(default_root_dir=str(run_dir), logger=loggers, callbacks=callbacks, **kwargs)
 
 

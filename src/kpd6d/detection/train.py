@@ -19,7 +19,7 @@ from typing import Any
 
 from kpd6d.config import run_dir_of, to_plain
 
-__all__ = ["RENAMED_STAGE_KEYS", "check_stage_config", "prepare_data", "train_detector"]
+__all__ = ["RENAMED_STAGE_KEYS", "check_stage_config", "prepare_data", "renamed_overrides", "train_detector"]
 
 #: settings of earlier versions -> where they live now (``{stage}``: ``stage`` or ``detector_stage``)
 RENAMED_STAGE_KEYS = {
@@ -39,6 +39,18 @@ def check_stage_config(stage: Any, where: str = "stage") -> None:
     old = [k for k in RENAMED_STAGE_KEYS if k in stage and stage[k] is not None]
     if old:
         raise ValueError("; ".join(f"{where}.{k} is now {RENAMED_STAGE_KEYS[k].format(stage=where)}" for k in old))
+
+
+def renamed_overrides(overrides) -> list[str]:
+    """For command-line overrides (``stage.max_minutes=14``, ``detector_stage.recipe=fast``, ...) that
+    spell a detector-stage setting of an earlier version: what each is called now."""
+    out = []
+    for arg in overrides:
+        key = str(arg).split("=", 1)[0].lstrip("+~")
+        parts = key.split(".")
+        if len(parts) >= 2 and parts[0] in ("stage", "detector_stage") and parts[1] in RENAMED_STAGE_KEYS:
+            out.append(f"{parts[0]}.{parts[1]} is now {RENAMED_STAGE_KEYS[parts[1]].format(stage=parts[0])}")
+    return out
 
 
 def prepare_data(cfg: Any, run_dir: Path) -> Path:

@@ -66,7 +66,8 @@ class DetectorModule(pl.LightningModule):
     ``schedule``, ``step_epochs``, ...) is still understood (:func:`legacy_optimization`)."""
 
     def __init__(self, detector: Mapping[str, Any], optimizer: Mapping[str, Any] | None = None,
-                 scheduler: Mapping[str, Any] | None = None, augment: Mapping[str, Any] | None = None, eval_score_threshold: float = 0.01,
+                 scheduler: Mapping[str, Any] | None = None, augment: Mapping[str, Any] | None = None,
+                 eval_score_threshold: float = 0.01,
                  box_stats_iou: float = 0.5, stats_path: str | None = None, seed: int = 0,
                  channels_last: bool = True, finetune: Mapping[str, Any] | None = None) -> None:
         super().__init__()
@@ -171,7 +172,8 @@ class DetectorModule(pl.LightningModule):
         if self._backbone() is not None and self.finetune["backbone_lr_mult"] != 1.0:
             from kpd6d.finetune import param_groups
 
-            params = param_groups(self, self._backbone(), self.opt_cfg.get("lr", 1e-3), self.finetune["backbone_lr_mult"])
+            lr = self.opt_cfg.get("lr", 1e-3)
+            params = param_groups(self, self._backbone(), lr, self.finetune["backbone_lr_mult"])
         return configure_optimization(params, self.opt_cfg, self.sched_cfg,
                                       total_steps=lambda: self.trainer.estimated_stepping_batches)
 

@@ -210,7 +210,7 @@ def _read_csv_metrics(path: Path) -> list[dict]:
 def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     run = tmp_path / "run"
     args = [sys.executable, "-m", "kpd6d.cli.train", "stage=detector", "detector=centernet_tiny",
-            f"data.root={toy_root}", f"hydra.run.dir={run}", "stage.recipe=fast", "stage.max_epochs=2",
+            f"data.root={toy_root}", f"hydra.run.dir={run}", "detector_recipe@stage=fast", "stage.trainer.max_epochs=2",
             "stage.num_threads=1", "stage.batch_size=4", "detector.input_size=[96,64]", "stage.augment.scale=0.1",
             "stage.ema_decay=0.9"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
@@ -227,7 +227,7 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     assert any(r.get("val/map_50") not in (None, "") for r in rows)
     assert any(r.get("train/loss_epoch") not in (None, "") for r in rows)
     assert list((run / "tb").rglob("events.out.tfevents*"))
-    summary = json.loads((run / "summary.json").read_text())
+    summary = json.loads((run / "metrics.json").read_text())
     assert summary["epochs"] == 2 and 0.0 <= summary["map_50"] <= 1.0
     # weight averaging: the checkpoint carries its state; the exported detector is the average
     assert torch.load(run / "checkpoints" / "last.ckpt", weights_only=False)["callbacks"]["WeightEMA"]["num_updates"] > 0
@@ -236,12 +236,12 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     x = torch.rand(1, 3, 64, 96)
     torch.testing.assert_close(ckpt.predict(x)[0].scores, det.predict(x)[0].scores)
     # rerunning in the same folder resumes from last.ckpt and trains only the missing epoch
-    args3 = [a if a != "stage.max_epochs=2" else "stage.max_epochs=3" for a in args]
+    args3 = [a if a != "stage.trainer.max_epochs=2" else "stage.trainer.max_epochs=3" for a in args]
     res = subprocess.run(args3,
                          cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "Restoring states from the checkpoint" in res.stderr + res.stdout
-    assert json.loads((run / "summary.json").read_text())["epochs"] == 3
+    assert json.loads((run / "metrics.json").read_text())["epochs"] == 3
 
 
 def test_module_rejects_bad_settings():

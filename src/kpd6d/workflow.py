@@ -193,6 +193,10 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     from kpd6d.io import atomic_write_text
 
     t_start = time.time()
+    if not cfg.detector_ckpt:  # settings of an earlier version: named before any data is made
+        from kpd6d.detection.train import check_stage_config
+
+        check_stage_config(cfg.detector_stage, "detector_stage")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     models = load_objects(cfg.objects)

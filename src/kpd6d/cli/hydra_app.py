@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import sys
 from collections.abc import Callable
 
 from kpd6d.paths import config_dir
@@ -14,6 +15,23 @@ def hydra_main(config_name: str) -> Callable[[Callable], Callable[[], None]]:
     def deco(fn: Callable) -> Callable[[], None]:
         wrapped = hydra.main(config_path=str(config_dir()), config_name=config_name, version_base="1.3")(fn)
         wrapped.__doc__ = fn.__doc__
-        return wrapped
+
+        def main() -> None:
+            _reject_renamed_overrides(sys.argv[1:])
+            wrapped()
+
+        main.__doc__ = fn.__doc__
+        return main
 
     return deco
+
+
+def _reject_renamed_overrides(args: list[str]) -> None:
+    """Overrides of settings that moved (Hydra would only say "not in struct"): exit naming the new spelling."""
+    if not any(a.lstrip("+~").startswith(("stage.", "detector_stage.")) for a in args):
+        return  # (keeps the other tools from importing the detector package)
+    from kpd6d.detection.train import renamed_overrides
+
+    moved = renamed_overrides(args)
+    if moved:
+        raise SystemExit("error: " + "; ".join(moved))

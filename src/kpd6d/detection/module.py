@@ -18,19 +18,56 @@ import torch
 from kpd6d.detection.detectors import CHECKPOINT_KEY, detector_record
 from kpd6d.registry import DETECTORS, build_from_cfg
 
-__all__ = ["DEFAULT_AUGMENT", "DEFAULT_OPTIMIZER", "DetectorModule"]
+__all__ = ["DEFAULT_AUGMENT", "DEFAULT_OPTIMIZER", "DEFAULT_SCHEDULER", "DetectorModule", "legacy_optimization"]
 
-#: The paper's YOLO recipe: SGD, lr 1e-3 divided by 10 every 100 epochs.
-DEFAULT_OPTIMIZER = {"name": "sgd", "lr": 1e-3, "momentum": 0.9, "weight_decay": 5e-4,
-                     "schedule": "step", "step_epochs": 100, "gamma": 0.1, "warmup_steps": 0,
-                     "minutes": 0.0}
+#: The paper's YOLO recipe (conf/detector_recipe/paper.yaml): SGD, lr 1e-3 divided by 10 every 100 epochs.
+DEFAULT_OPTIMIZER = {"name": "sgd", "lr": 1e-3, "momentum": 0.9, "weight_decay": 5e-4}
+DEFAULT_SCHEDULER = {"name": "step", "step_size": 100, "gamma": 0.1}
 #: HSV changes up to 1.5x, random scale ±20%.
 DEFAULT_AUGMENT = {"enabled": True, "hsv": 1.5, "hue": 0.0, "scale": 0.2, "translate": 0.0}
 
+#: the flat optimiser dictionary of earlier versions (optimiser and schedule in one node)
+_LEGACY_OPTIMIZER = {"name": "sgd", "lr": 1e-3, "momentum": 0.9, "weight_decay": 5e-4, "schedule": "step",
+                     "step_epochs": 100, "gamma": 0.1, "warmup_steps": 0, "minutes": 0.0}
+_LEGACY_ONLY = {"schedule", "step_epochs", "gamma", "warmup_steps", "minutes"}
+
+
+def legacy_optimization(optimizer: Mapping[str, Any]) -> tuple[dict, dict]:
+    """An earlier version's flat ``{name, lr, momentum, weight_decay, schedule, step_epochs, gamma,
+    warmup_steps, minutes}`` as the (``optimizer``, ``scheduler``) pair of :mod:`kpd6d.training`
+    that trains the same (defaults as they were: the paper's recipe)."""
+    unknown = set(optimizer) - set(_LEGACY_OPTIMIZER)
+    if unknown:
+        raise ValueError(f"unknown optimizer setting(s) {sorted(unknown)}; known: {sorted(_LEGACY_OPTIMIZER)}")
+    c = {**_LEGACY_OPTIMIZER, **optimizer}
+    opt = {"name": c["name"], "lr": c["lr"], "weight_decay": c["weight_decay"]}
+    if c["name"] == "sgd":
+        opt["momentum"] = c["momentum"]
+    warm, schedule = int(c["warmup_steps"]), c["schedule"]
+    if schedule == "step":  # no warm-up
+        sched = {"name": "step", "step_size": int(c["step_epochs"]), "gamma": c["gamma"]}
+    elif schedule == "cosine":
+        sched = {"name": "cosine_steps", "warmup_steps": warm, "min_factor": 0.02}
+    elif schedule == "cosine_time":
+        if float(c["minutes"]) <= 0:
+            raise ValueError("schedule cosine_time needs optimizer.minutes > 0 (the training time budget)")
+        sched = {"name": "cosine_time", "warmup_steps": warm, "min_factor": 0.02, "budget_s": float(c["minutes"]) * 60.0}
+    elif schedule == "constant":
+        sched = {"name": "constant", "warmup_steps": warm}
+    else:
+        raise ValueError(f"unknown schedule {schedule!r}; known: step, cosine, cosine_time, constant")
+    return opt, sched
+
 
 class DetectorModule(pl.LightningModule):
+    """``optimizer`` / ``scheduler``: :mod:`kpd6d.training`'s schema (defaults: the paper's recipe,
+    :data:`DEFAULT_OPTIMIZER`, :data:`DEFAULT_SCHEDULER`; ``scheduler`` null with an ``optimizer``
+    given: constant learning rate). An earlier version's flat optimiser dictionary (with
+    ``schedule``, ``step_epochs``, ...) is still understood (:func:`legacy_optimization`)."""
+
     def __init__(self, detector: Mapping[str, Any], optimizer: Mapping[str, Any] | None = None,
-                 augment: Mapping[str, Any] | None = None, eval_score_threshold: float = 0.01,
+                 scheduler: Mapping[str, Any] | None = None, augment: Mapping[str, Any] | None = None,
+                 eval_score_threshold: float = 0.01,
                  box_stats_iou: float = 0.5, stats_path: str | None = None, seed: int = 0,
                  channels_last: bool = True, finetune: Mapping[str, Any] | None = None) -> None:
         super().__init__()
@@ -42,13 +79,21 @@ class DetectorModule(pl.LightningModule):
         if not self.detector.trainable:
             raise ValueError(f"detector {detector.get('name')!r} is not trainable; known trainable detectors: "
                              + ", ".join(n for n in DETECTORS.names() if n != "oracle"))
-        unknown = set(optimizer or {}) - set(DEFAULT_OPTIMIZER)
-        if unknown:
-            raise ValueError(f"unknown optimizer setting(s) {sorted(unknown)}; known: {sorted(DEFAULT_OPTIMIZER)}")
+        from kpd6d.training import check_optimizer
+
+        optimizer = dict(optimizer) if optimizer is not None else None
+        if optimizer is None:
+            optimizer, scheduler = dict(DEFAULT_OPTIMIZER), dict(scheduler or DEFAULT_SCHEDULER)
+        elif _LEGACY_ONLY & set(optimizer):
+            if scheduler is not None:
+                raise ValueError("DetectorModule: give the schedule either in scheduler or (the earlier flat form) "
+                                 "in optimizer.schedule, not both")
+            optimizer, scheduler = legacy_optimization(optimizer)
+        self.opt_cfg = check_optimizer(optimizer)
+        self.sched_cfg = dict(scheduler) if scheduler else None
         unknown = set(augment or {}) - set(DEFAULT_AUGMENT)
         if unknown:
             raise ValueError(f"unknown augment setting(s) {sorted(unknown)}; known: {sorted(DEFAULT_AUGMENT)}")
-        self.opt_cfg = {**DEFAULT_OPTIMIZER, **(optimizer or {})}
         self.aug_cfg = {**DEFAULT_AUGMENT, **(augment or {})}
         self.eval_score_threshold = float(eval_score_threshold)
         self.stats_path = stats_path
@@ -121,40 +166,16 @@ class DetectorModule(pl.LightningModule):
 
     # -- optimisation -------------------------------------------------------------------------
     def configure_optimizers(self):
-        c = self.opt_cfg
+        from kpd6d.training import configure_optimization
+
         params = [p for p in self.parameters() if p.requires_grad]
         if self._backbone() is not None and self.finetune["backbone_lr_mult"] != 1.0:
             from kpd6d.finetune import param_groups
 
-            params = param_groups(self, self._backbone(), c["lr"], self.finetune["backbone_lr_mult"])
-        if c["name"] == "sgd":
-            opt = torch.optim.SGD(params, lr=c["lr"], momentum=c["momentum"], weight_decay=c["weight_decay"])
-        elif c["name"] in ("adam", "adamw"):
-            cls = torch.optim.AdamW if c["name"] == "adamw" else torch.optim.Adam
-            opt = cls(params, lr=c["lr"], weight_decay=c["weight_decay"])
-        else:
-            raise ValueError(f"unknown optimizer {c['name']!r}; known: sgd, adam, adamw")
-        warm = int(c["warmup_steps"])
-        if c["schedule"] == "step":  # the paper's: lr / 10 every step_epochs epochs (no warm-up)
-            sched = torch.optim.lr_scheduler.StepLR(opt, int(c["step_epochs"]), c["gamma"])
-            return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "epoch"}}
-        if c["schedule"] in ("cosine", "cosine_time"):
-            from kpd6d.schedules import WarmupCosine
-
-            if c["schedule"] == "cosine":
-                est = self.trainer.estimated_stepping_batches
-                factor = WarmupCosine(warm, 0.02, total_steps=max(int(est), 1) if est != float("inf") else 100_000)
-            else:  # cosine over a wall-clock budget (CPU runs capped by max_time)
-                if float(c["minutes"]) <= 0:
-                    raise ValueError("schedule cosine_time needs optimizer.minutes > 0 (the training time budget)")
-                factor = WarmupCosine(warm, 0.02, budget_s=float(c["minutes"]) * 60.0)
-        elif c["schedule"] == "constant":
-            def factor(it: int) -> float:
-                return min(1.0, (it + 1) / warm) if warm else 1.0
-        else:
-            raise ValueError(f"unknown schedule {c['schedule']!r}; known: step, cosine, cosine_time, constant")
-        sched = torch.optim.lr_scheduler.LambdaLR(opt, factor)
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": sched, "interval": "step"}}
+            lr = self.opt_cfg.get("lr", 1e-3)
+            params = param_groups(self, self._backbone(), lr, self.finetune["backbone_lr_mult"])
+        return configure_optimization(params, self.opt_cfg, self.sched_cfg,
+                                      total_steps=lambda: self.trainer.estimated_stepping_batches)
 
     # -- checkpoints --------------------------------------------------------------------------
     def on_save_checkpoint(self, checkpoint: dict) -> None:

@@ -230,48 +230,12 @@ class KPDModule(pl.LightningModule):
                             [hp.symmetric[i] for i in idx], [hp.diameters[i] for i in idx])
 
     def configure_optimizers(self):
-        ocfg = dict(self.hparams.optimizer)
-        name = ocfg.pop("name", "adam").lower()
-        optimizers = {"adam": torch.optim.Adam, "adamw": torch.optim.AdamW, "sgd": torch.optim.SGD,
-                      "rmsprop": torch.optim.RMSprop}
-        if name not in optimizers:
-            raise ValueError(f"unknown optimizer {name!r}; known: {', '.join(sorted(optimizers))}")
-        lr = ocfg.pop("lr", 1e-3)
-        opt = optimizers[name](param_groups(self, self.net.backbone, lr, self.hparams.finetune["backbone_lr_mult"]),
-                               lr=lr, **ocfg)
-        if not self.hparams.scheduler:
-            return opt
-        scfg = dict(self.hparams.scheduler)
-        sname = scfg.pop("name", None)
-        interval = scfg.pop("interval", "epoch")
-        if sname in ("cosine_steps", "cosine_time"):  # warm-up + cosine over the run's steps or wall-clock budget
-            from kpd6d.schedules import WarmupCosine
+        from kpd6d.training import configure_optimization
 
-            warm, floor = int(scfg.pop("warmup_steps", 0)), float(scfg.pop("min_factor", 0.02))
-            if sname == "cosine_time":
-                budget = scfg.pop("budget_s", None)
-                if not budget:
-                    raise ValueError("scheduler cosine_time needs scheduler.budget_s (kpd6d-train fills it in from "
-                                     "trainer.max_time)")
-                factor = WarmupCosine(warm, floor, budget_s=float(budget))
-            else:
-                factor = WarmupCosine(warm, floor, total_steps=max(int(self.trainer.estimated_stepping_batches), 1))
-            if scfg:
-                raise ValueError(f"scheduler {sname}: unknown option(s) {sorted(scfg)}; known: warmup_steps, "
-                                 "min_factor" + (", budget_s" if sname == "cosine_time" else ""))
-            return {"optimizer": opt, "lr_scheduler": {
-                "scheduler": torch.optim.lr_scheduler.LambdaLR(opt, factor), "interval": "step"}}
-        schedulers = {"step": torch.optim.lr_scheduler.StepLR, "multistep": torch.optim.lr_scheduler.MultiStepLR,
-                      "cosine": torch.optim.lr_scheduler.CosineAnnealingLR,
-                      "exponential": torch.optim.lr_scheduler.ExponentialLR,
-                      "onecycle": torch.optim.lr_scheduler.OneCycleLR}
-        if sname not in schedulers:
-            known = ", ".join(sorted([*schedulers, "cosine_steps", "cosine_time"]))
-            raise ValueError(f"unknown scheduler {sname!r}; known: {known}")
-        if sname == "onecycle" and "total_steps" not in scfg:
-            scfg["total_steps"] = int(self.trainer.estimated_stepping_batches)
-            interval = "step"
-        return {"optimizer": opt, "lr_scheduler": {"scheduler": schedulers[sname](opt, **scfg), "interval": interval}}
+        lr = dict(self.hparams.optimizer).get("lr", 1e-3)
+        params = param_groups(self, self.net.backbone, lr, self.hparams.finetune["backbone_lr_mult"])
+        return configure_optimization(params, self.hparams.optimizer, self.hparams.scheduler,
+                                      total_steps=lambda: self.trainer.estimated_stepping_batches)
 
     def train(self, mode: bool = True):
         super().train(mode)

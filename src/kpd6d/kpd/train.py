@@ -12,7 +12,6 @@ directory.
 
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -72,37 +71,26 @@ def build_datasets(cfg, root: Path):
 
 
 def scheduler_config(k) -> dict | None:
-    """``stage.kpd.scheduler`` as a dict; ``cosine_time`` gets its budget from ``trainer.max_time``."""
-    scheduler = to_plain(k.scheduler)
-    if scheduler and scheduler.get("name") == "cosine_time" and not scheduler.get("budget_s"):
-        from kpd6d.schedules import parse_max_time
+    """``stage.kpd.scheduler`` as a dict; ``cosine_time`` gets its budget from ``trainer.max_time``
+    (:func:`kpd6d.training.resolve_scheduler`)."""
+    from kpd6d.training import resolve_scheduler
 
-        scheduler["budget_s"] = parse_max_time(to_plain(k.trainer).get("max_time"))
-        if not scheduler["budget_s"]:
-            raise ValueError("stage.kpd.scheduler cosine_time decays over the wall-clock budget: set "
-                             "stage.kpd.trainer.max_time (e.g. 00:00:15:00) or stage.kpd.scheduler.budget_s")
-    return scheduler
+    return resolve_scheduler(k.scheduler, k.trainer, where="stage.kpd")
 
 
 def train_kpd(cfg) -> Path:
     """Train the KPD stage; returns the run directory."""
-    import pytorch_lightning as pl
     import torch
-    from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint, TQDMProgressBar
-    from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
 
-    from kpd6d.ema import ema_callback
-    from kpd6d.io import atomic_write_json
     from kpd6d.kpd.module import KPDModule
+    from kpd6d.training import build_trainer, fit, seed_and_threads, write_metrics
 
     t0 = time.time()
     k = cfg.stage.kpd
     scheduler = scheduler_config(k)  # config errors before any data is generated
     run_dir = run_dir_of(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
-    if k.get("num_threads"):
-        torch.set_num_threads(int(k.num_threads))
-    pl.seed_everything(int(cfg.seed), workers=True)
+    seed_and_threads(cfg.seed, k.get("num_threads"))
     root = generate_if_needed(cfg, run_dir)
     train_ds, val_ds = build_datasets(cfg, root)
 
@@ -121,42 +109,10 @@ def train_kpd(cfg) -> Path:
                                                **loader_kw)
     val_loader = torch.utils.data.DataLoader(val_ds, shuffle=False, **loader_kw) if val_ds is not None else None
 
-    ckpt_dir = run_dir / "checkpoints"
-    monitor = "val/proj2d_acc_5px" if val_ds is not None else "train/loss_epoch"
-    callbacks = [
-        ModelCheckpoint(dirpath=ckpt_dir, filename="best", monitor=monitor,
-                        mode="max" if val_ds is not None else "min", save_top_k=1, save_last=True),
-        TQDMProgressBar(refresh_rate=max(1, int(k.get("progress_refresh", 1)))),
-        LearningRateMonitor(logging_interval="epoch"),
-        *ema_callback(k.get("ema_decay")),  # checkpoints then hold the weight average
-    ]
-    # a new version_N per (re)start, so resuming keeps the earlier logs
-    loggers = [TensorBoardLogger(str(run_dir), name="tb"), CSVLogger(str(run_dir), name="csv")]
-    tkw = {key: v for key, v in to_plain(k.trainer).items() if v is not None}
-    trainer = pl.Trainer(default_root_dir=str(run_dir), logger=loggers, callbacks=callbacks, **tkw)
-    last = ckpt_dir / "last.ckpt"
-    resume = str(last) if (k.get("resume", True) and last.is_file()) else None
-    if resume:
-        print(f"kpd6d-train: resuming from {resume}")
-    trainer.fit(module, train_loader, val_loader, ckpt_path=resume)
-
-    metrics = {key: float(v) for key, v in trainer.callback_metrics.items() if hasattr(v, "item") and v.numel() == 1}
-    best = callbacks[0]
-    summary = {
-        "stage": "kpd",
-        "data_root": str(root),
-        "obj_ids": train_ds.obj_ids,
-        "train_instances": len(train_ds),
-        "val_instances": len(val_ds) if val_ds is not None else 0,
-        "epochs": int(trainer.current_epoch),
-        "global_step": int(trainer.global_step),
-        "wall_time_s": round(time.time() - t0, 1),
-        "best_checkpoint": best.best_model_path or None,
-        "best_" + monitor.replace("/", "_"): float(best.best_model_score) if best.best_model_score is not None else None,
-        "last_checkpoint": str(last) if last.is_file() else None,
-        "final_metrics": metrics,
-    }
-    atomic_write_json(run_dir / "metrics.json", summary)
-    print(json.dumps({k2: v for k2, v in summary.items() if k2 != "final_metrics"}, indent=1))
-    print("final metrics: " + ", ".join(f"{k2}={v:.4g}" for k2, v in sorted(metrics.items())))
+    trainer = build_trainer(run_dir, k.trainer, monitor="val/proj2d_acc_5px" if val_ds is not None else "train/loss_epoch",
+                            mode="max" if val_ds is not None else "min", ema_decay=k.get("ema_decay"),
+                            progress_refresh=int(k.get("progress_refresh", 1)))
+    fit(trainer, module, train_loader, val_loader, resume=bool(k.get("resume", True)))
+    write_metrics(run_dir, trainer, stage="kpd", t0=t0, data_root=str(root), obj_ids=train_ds.obj_ids,
+                  train_instances=len(train_ds), val_instances=len(val_ds) if val_ds is not None else 0)
     return run_dir

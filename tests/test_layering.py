@@ -6,6 +6,7 @@ Layers, lowest first (a "unit" is a top-level module ``kpd6d/X.py`` or a subpack
 
     L0  io, geometry, registry, paths, config    file I/O, conventions, the registry tables, settings
     L1  objects, symmetry, render, pnp, visualize, pretrained, schedules, ema, finetune, box_errors
+    L1b training                                 the trainer/checkpoint/optimizer setup of both stages
     L2  keypoints
     L3  data, synth                              BOP datasets; the generator that writes them
     L4  evaluation, detection, kpd               metrics; the two trained stages
@@ -47,6 +48,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("io", "geometry", "registry", "paths", "config"),
     ("objects", "symmetry", "render", "pnp", "visualize", "pretrained", "schedules", "ema", "finetune",
      "box_errors"),
+    ("training",),
     ("keypoints",),
     ("data", "synth"),
     ("evaluation", "detection", "kpd"),

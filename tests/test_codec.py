@@ -125,12 +125,25 @@ def test_one_codec_node_in_the_stage_config():
     codec = build_codec(cfg.stage.kpd.codec)
     assert codec.config() == {"name": "heatmap", "input_size": 96, "out_stride": 4, "sigma": 3.0, "crop_scale": 1.25,
                               "decoder": {"name": "soft_argmax", "temperature": 1.0, "window": 5}}
-    # the transition aliases kpd/train.py reads follow the codec node
+    # one node: the separate fields of earlier versions are gone from the stage
     k = cfg.stage.kpd
-    assert (k.input_size, k.out_stride, k.sigma, k.crop_scale) == (96, 4, 3.0, 1.25)
-    assert cfg.stage.decoder == cfg.stage.kpd.codec.decoder
+    assert not any(key in k for key in ("input_size", "out_stride", "sigma", "crop_scale")) and "decoder" not in cfg.stage
     run = _compose("run", ["experiment=linemod"])
-    assert run.kpd_stage.kpd.codec.input_size == 256 and run.kpd_stage.decoder.name == "subpixel"
+    assert run.kpd_stage.kpd.codec.input_size == 256 and run.kpd_stage.kpd.codec.decoder.name == "subpixel"
+
+
+def test_old_codec_spellings_name_the_new_ones():
+    from kpd6d.config import check_stage_config, renamed_overrides
+
+    assert renamed_overrides(["kpd_stage.kpd.input_size=64", "decoder@stage.decoder=argmax", "stage.kpd.sigma=3",
+                              "stage.kpd.codec.sigma=3", "kpd_stage.kpd.batch_size=8"]) == [
+        "kpd_stage.kpd.input_size is now kpd_stage.kpd.codec.input_size",
+        "stage.decoder is now stage.kpd.codec.decoder (decoder@stage.kpd.codec.decoder=NAME)",
+        "stage.kpd.sigma is now stage.kpd.codec.sigma",
+    ]
+    with pytest.raises(ValueError, match=r"kpd_stage\.kpd\.crop_scale is now kpd_stage\.kpd\.codec\.crop_scale"):
+        check_stage_config({"kpd": {"crop_scale": 1.5, "batch_size": 8}}, "kpd_stage")
+    check_stage_config(_compose("run", []).kpd_stage, "kpd_stage")  # the shipped configs are clean
 
 
 def test_old_decoder_override_names_the_new_spelling():

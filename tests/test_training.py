@@ -139,7 +139,7 @@ def test_detector_recipes_are_a_config_group(recipe, opt_cls, sched_name, epochs
 
 
 def test_old_detector_stage_spellings_name_the_new_ones():
-    from kpd6d.detection.train import check_stage_config, renamed_overrides
+    from kpd6d.config import check_stage_config, renamed_overrides
 
     assert renamed_overrides(["stage.recipe=fast", "stage.batch_size=4", "detector_stage.max_minutes=3"]) == [
         "stage.recipe is now the detector_recipe config group: detector_recipe@stage=NAME (paper, fast, cpu_budget)",

@@ -16,7 +16,7 @@ TINY = [
     "detector=centernet_tiny", "detector.input_size=[128,96]", "detector_stage.trainer.max_time=null",
     "detector_recipe@detector_stage=fast", "detector_stage.trainer.max_epochs=1", "detector_stage.batch_size=4",
     "detector_stage.trainer.precision=32-true",
-    "backbone@kpd_stage.backbone=tiny", "kpd_stage.kpd.input_size=32", "kpd_stage.kpd.num_workers=0",
+    "backbone@kpd_stage.backbone=tiny", "kpd_stage.kpd.codec.input_size=32", "kpd_stage.kpd.num_workers=0",
     "kpd_stage.kpd.batch_size=4", "kpd_stage.kpd.trainer.max_time=null", "kpd_stage.kpd.trainer.max_epochs=1",
     "kpd_stage.kpd.trainer.precision=32-true", "kpd_stage.kpd.scheduler=null",
 ]
@@ -109,7 +109,7 @@ LMO_TINY = [
     "detector.input_size=[128,96]", "detector_stage.trainer.max_time=null",
     "detector_recipe@detector_stage=fast", "detector_stage.trainer.max_epochs=1", "detector_stage.batch_size=4",
     "detector_stage.trainer.precision=32-true",
-    "backbone@kpd_stage.backbone=tiny", "kpd_stage.kpd.input_size=32", "kpd_stage.kpd.num_workers=0",
+    "backbone@kpd_stage.backbone=tiny", "kpd_stage.kpd.codec.input_size=32", "kpd_stage.kpd.num_workers=0",
     "kpd_stage.kpd.batch_size=4", "kpd_stage.kpd.trainer.max_time=null", "kpd_stage.kpd.trainer.max_epochs=1",
     "kpd_stage.kpd.scheduler=null",
 ]

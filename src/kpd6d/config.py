@@ -8,7 +8,7 @@ from typing import Any
 
 from kpd6d.io import to_plain  # lives with the file writers; re-exported here
 
-__all__ = ["run_dir_of", "to_plain"]
+__all__ = ["RENAMED_STAGE_KEYS", "check_stage_config", "renamed_overrides", "run_dir_of", "to_plain"]
 
 
 def run_dir_of(cfg: Any) -> Path:
@@ -25,3 +25,65 @@ def run_dir_of(cfg: Any) -> Path:
     except ImportError:  # pragma: no cover
         pass
     return Path(os.getcwd())
+
+
+#: settings of earlier versions -> where they live now. Keys are dotted paths below a stage node;
+#: ``{stage}`` in the text is the node the user wrote (``stage``, ``detector_stage`` or ``kpd_stage``).
+RENAMED_STAGE_KEYS = {
+    # detector stage: one trainer node and a recipe group (kpd6d.training)
+    "recipe": "the detector_recipe config group: detector_recipe@{stage}=NAME (paper, fast, cpu_budget)",
+    "recipes": "conf/detector_recipe/NAME.yaml ({stage}.optimizer, {stage}.scheduler, {stage}.trainer.max_epochs)",
+    "max_epochs": "{stage}.trainer.max_epochs",
+    "max_minutes": "{stage}.trainer.max_time (DD:HH:MM:SS, e.g. 00:00:14:00)",
+    "accelerator": "{stage}.trainer.accelerator",
+    "precision": "{stage}.trainer.precision",
+    "val_every_n_epochs": "{stage}.trainer.check_val_every_n_epoch",
+    "log_every_n_steps": "{stage}.trainer.log_every_n_steps",
+    # KPD stage: one heatmap codec node (kpd6d.kpd.codec)
+    "kpd.input_size": "{stage}.kpd.codec.input_size",
+    "kpd.out_stride": "{stage}.kpd.codec.out_stride",
+    "kpd.sigma": "{stage}.kpd.codec.sigma",
+    "kpd.crop_scale": "{stage}.kpd.codec.crop_scale",
+    "decoder": "{stage}.kpd.codec.decoder (decoder@{stage}.kpd.codec.decoder=NAME)",
+}
+_STAGE_NODES = ("stage", "detector_stage", "kpd_stage")
+
+
+def _renamed(node: str, key: str) -> str | None:
+    for old, new in RENAMED_STAGE_KEYS.items():
+        if key == old or key.startswith(old + "."):
+            return f"{node}.{old} is now {new.format(stage=node)}"
+    return None
+
+
+def check_stage_config(stage: Any, where: str = "stage") -> None:
+    """Raise ``ValueError`` naming the new spelling when the stage node ``stage`` sets a setting of an
+    earlier version (e.g. from an experiment file)."""
+    found = []
+    for old in RENAMED_STAGE_KEYS:
+        node = stage
+        for part in old.split("."):
+            node = node.get(part) if hasattr(node, "get") else None
+            if node is None:
+                break
+        if node is not None:
+            found.append(_renamed(where, old))
+    if found:
+        raise ValueError("; ".join(found))
+
+
+def renamed_overrides(overrides) -> list[str]:
+    """For command-line overrides that spell a stage setting of an earlier version
+    (``stage.max_minutes=14``, ``kpd_stage.kpd.input_size=64``, ``decoder@stage.decoder=argmax``):
+    what each is called now."""
+    out = []
+    for arg in overrides:
+        key = str(arg).split("=", 1)[0].lstrip("+~")
+        if "@" in key:  # group@package: the package is the config path
+            key = key.split("@", 1)[1]
+        node, _, rest = key.partition(".")
+        if node in _STAGE_NODES and rest:
+            msg = _renamed(node, rest)
+            if msg:
+                out.append(msg)
+    return out

@@ -234,8 +234,8 @@ def build_trainer(run_dir: str | Path, trainer: Mapping[str, Any] | None, *, mon
     from pytorch_lightning.callbacks import LearningRateMonitor, ModelCheckpoint, TQDMProgressBar
     from pytorch_lightning.loggers import CSVLogger, TensorBoardLogger
 
-    from kpd6d.io import to_plain
     from kpd6d.ema import ema_callback
+    from kpd6d.io import to_plain
 
     run_dir = Path(run_dir)
     if mode not in ("max", "min"):

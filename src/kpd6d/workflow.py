@@ -194,9 +194,11 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
 
     t_start = time.time()
     if not cfg.detector_ckpt:  # settings of an earlier version: named before any data is made
-        from kpd6d.detection.train import check_stage_config
+        from kpd6d.config import check_stage_config
 
         check_stage_config(cfg.detector_stage, "detector_stage")
+    if not cfg.kpd_ckpt:
+        check_stage_config(cfg.kpd_stage, "kpd_stage")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     models = load_objects(cfg.objects)

@@ -28,9 +28,7 @@ def hydra_main(config_name: str) -> Callable[[Callable], Callable[[], None]]:
 
 def _reject_renamed_overrides(args: list[str]) -> None:
     """Overrides of settings that moved (Hydra would only say "not in struct"): exit naming the new spelling."""
-    if not any(a.lstrip("+~").startswith(("stage.", "detector_stage.")) for a in args):
-        return  # (keeps the other tools from importing the detector package)
-    from kpd6d.detection.train import renamed_overrides
+    from kpd6d.config import renamed_overrides
 
     moved = renamed_overrides(args)
     if moved:

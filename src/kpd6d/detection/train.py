@@ -17,42 +17,10 @@ import time
 from pathlib import Path
 from typing import Any
 
-from kpd6d.config import run_dir_of
-from kpd6d.io import atomic_write_json, to_plain
+from kpd6d.config import check_stage_config, run_dir_of
+from kpd6d.io import to_plain
 
-__all__ = ["RENAMED_STAGE_KEYS", "check_stage_config", "prepare_data", "renamed_overrides", "train_detector"]
-
-#: settings of earlier versions -> where they live now (``{stage}``: ``stage`` or ``detector_stage``)
-RENAMED_STAGE_KEYS = {
-    "recipe": "the detector_recipe config group: detector_recipe@{stage}=NAME (paper, fast, cpu_budget)",
-    "recipes": "conf/detector_recipe/NAME.yaml ({stage}.optimizer, {stage}.scheduler, {stage}.trainer.max_epochs)",
-    "max_epochs": "{stage}.trainer.max_epochs",
-    "max_minutes": "{stage}.trainer.max_time (DD:HH:MM:SS, e.g. 00:00:14:00)",
-    "accelerator": "{stage}.trainer.accelerator",
-    "precision": "{stage}.trainer.precision",
-    "val_every_n_epochs": "{stage}.trainer.check_val_every_n_epoch",
-    "log_every_n_steps": "{stage}.trainer.log_every_n_steps",
-}
-
-
-def check_stage_config(stage: Any, where: str = "stage") -> None:
-    """Raise ``ValueError`` naming the new spelling when ``stage`` sets a setting of an earlier version."""
-    old = [k for k in RENAMED_STAGE_KEYS if k in stage and stage[k] is not None]
-    if old:
-        raise ValueError("; ".join(f"{where}.{k} is now {RENAMED_STAGE_KEYS[k].format(stage=where)}" for k in old))
-
-
-def renamed_overrides(overrides) -> list[str]:
-    """For command-line overrides (``stage.max_minutes=14``, ``detector_stage.recipe=fast``, ...) that
-    spell a detector-stage setting of an earlier version: what each is called now."""
-    out = []
-    for arg in overrides:
-        key = str(arg).split("=", 1)[0].lstrip("+~")
-        parts = key.split(".")
-        if len(parts) >= 2 and parts[0] in ("stage", "detector_stage") and parts[1] in RENAMED_STAGE_KEYS:
-            out.append(f"{parts[0]}.{parts[1]} is now {RENAMED_STAGE_KEYS[parts[1]].format(stage=parts[0])}")
-    return out
-
+__all__ = ["prepare_data", "train_detector"]
 
 def prepare_data(cfg: Any, run_dir: Path) -> Path:
     """``data.root``, or a procedural dataset generated (resumably) into ``<run_dir>/data``."""

@@ -1,6 +1,6 @@
 """``train_kpd(cfg)``: train the keypoint detector (``kpd6d-train stage=kpd ...``).
 
-Reads ``cfg.stage.backbone`` (conf/backbone/), ``cfg.stage.decoder`` (conf/decoder/) and
+Reads ``cfg.stage.backbone`` (conf/backbone/), ``cfg.stage.kpd.codec`` (conf/codec/ + conf/decoder/) and
 ``cfg.stage.kpd`` (conf/kpd/: model, loss, optimiser, augmentation, selection, data loader and
 ``trainer`` settings) plus the top-level ``seed`` and ``data`` nodes of conf/train.yaml. With
 ``data.root: null`` a small procedural dataset (train and val generated with different seeds) is
@@ -15,7 +15,7 @@ from __future__ import annotations
 import time
 from pathlib import Path
 
-from kpd6d.config import run_dir_of
+from kpd6d.config import check_stage_config, run_dir_of
 from kpd6d.io import to_plain
 
 __all__ = ["build_datasets", "generate_if_needed", "scheduler_config", "train_kpd"]
@@ -47,8 +47,7 @@ def build_datasets(cfg, root: Path):
     from kpd6d.kpd.crops import KPDCropDataset
 
     k = cfg.stage.kpd
-    common = dict(obj_ids=to_plain(k.obj_ids), input_size=int(k.input_size), out_stride=int(k.out_stride),
-                  sigma=float(k.sigma), crop_scale=float(k.crop_scale), box_source=k.box_source,
+    common = dict(obj_ids=to_plain(k.obj_ids), codec=to_plain(k.codec), box_source=k.box_source,
                   detections=k.detections, visibility=k.visibility, min_visib_fract=float(k.min_visib_fract))
     keypoints = None
     if k.get("keypoints"):  # a keypoint file other than the dataset's (e.g. another designator)
@@ -86,6 +85,7 @@ def train_kpd(cfg) -> Path:
     from kpd6d.training import build_trainer, fit, seed_and_threads, write_metrics
 
     t0 = time.time()
+    check_stage_config(cfg.stage)
     k = cfg.stage.kpd
     scheduler = scheduler_config(k)  # config errors before any data is generated
     run_dir = run_dir_of(cfg)
@@ -97,8 +97,7 @@ def train_kpd(cfg) -> Path:
     module = KPDModule.from_models(
         [train_ds.models[o] for o in train_ds.obj_ids], train_ds.keypoints_3d,
         backbone=to_plain(cfg.stage.backbone), head=to_plain(k.head), grouping=k.grouping,
-        input_size=int(k.input_size), out_stride=int(k.out_stride), sigma=float(k.sigma),
-        crop_scale=float(k.crop_scale), decoder=to_plain(cfg.stage.decoder), loss=to_plain(k.loss),
+        codec=to_plain(k.codec), loss=to_plain(k.loss),
         optimizer=to_plain(k.optimizer), scheduler=scheduler, augment=to_plain(k.augment),
         top_l=k.top_l, pnp=to_plain(k.pnp), channels_last=bool(k.get("channels_last", True)),
         finetune=to_plain(k.get("finetune")),

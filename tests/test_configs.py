@@ -7,7 +7,7 @@ from pathlib import Path
 import pytest
 from omegaconf import OmegaConf
 
-from kpd6d.paths import config_dir
+from kpd6d.config import config_dir
 from kpd6d.registry import REGISTRIES, build_from_cfg
 
 CONF = config_dir()

@@ -19,7 +19,7 @@ def detector_config(choice: str) -> dict:
     """The parameters of config choice ``conf/detector/<choice>.yaml`` (``name`` = registry name)."""
     from omegaconf import OmegaConf
 
-    from kpd6d.paths import config_dir
+    from kpd6d.config import config_dir
 
     path = config_dir() / "detector" / f"{choice}.yaml"
     if not path.is_file():

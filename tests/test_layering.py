@@ -66,6 +66,9 @@ ROOT_NAMES_ALLOWED = {"__version__"}
 MOVED = {
     "kpd6d.kpd.select": ("kpd6d.pnp.top_l", ("solve_top_l", "top_l", "top_l_mask")),
     "kpd6d.paths": ("kpd6d.config", ("config_dir",)),
+    "kpd6d.evaluation.evaluate": ("kpd6d.evaluation.runner", ("ADD_THRESHOLDS", "PX_THRESHOLDS", "compute_metrics",
+                                                              "eval_instances", "evaluate", "match_predictions")),
+    "kpd6d.detection.evaluate": ("kpd6d.detection.metrics", ("DetectionEvaluator", "evaluate_detector")),
 }
 
 

@@ -108,7 +108,7 @@ NB02 = [
              "                   [(p['obj_id'], p['R'], p['t']) for p in poses if p['ok']])\n"
              "plt.figure(figsize=(5, 4))\nplt.imshow(img)\nplt.axis('off');"),
     ("md", "## Evaluate on the test split and plot accuracy–threshold curves"),
-    ("code", "from kpd6d.evaluation.evaluate import evaluate\n"
+    ("code", "from kpd6d.evaluation.runner import evaluate\n"
              "metrics = evaluate(pipe, test, work / 'eval', oracle=True, batch_size=4, progress=False)\n"
              "print({k: round(v, 3) for k, v in metrics['mean'].items() if isinstance(v, float)})\n"
              "fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))\n"

@@ -61,7 +61,7 @@ def test_evaluation_never_writes_into_the_dataset(tmp_path):
     """kpd6d-evaluate with its output folder inside the dataset used to overwrite the dataset's own
     test_targets_bop19.json."""
     from kpd6d.data import BopDataset
-    from kpd6d.evaluation.evaluate import evaluate
+    from kpd6d.evaluation.runner import evaluate
     from kpd6d.synth import generate_dataset
 
     root = tmp_path / "ds"

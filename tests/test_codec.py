@@ -113,7 +113,7 @@ def test_config_round_trip_and_legacy_fields():
 def _compose(name, overrides):
     from hydra import compose, initialize_config_dir
 
-    from kpd6d.paths import config_dir
+    from kpd6d.config import config_dir
 
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         return compose(config_name=name, overrides=overrides)

@@ -10,7 +10,7 @@ import trimesh
 from scipy.spatial.distance import pdist
 
 from kpd6d.geometry import backproject
-from kpd6d.keypoints.selection import PointMetric
+from kpd6d.keypoints.sampling import PointMetric
 from kpd6d.objects import procedural_objects
 from kpd6d.registry import DESIGNATORS, UnknownNameError
 

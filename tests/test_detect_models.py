@@ -412,7 +412,7 @@ def test_centernet_loads_a_local_backbone_file_partially(tmp_path):
 
 def test_detection_evaluator_ap50_per_object():
     """Object 1 found exactly, object 2 only by a box that misses it (IoU < 0.5): AP@0.5 1 and 0."""
-    from kpd6d.detection.evaluate import DetectionEvaluator
+    from kpd6d.detection.metrics import DetectionEvaluator
 
     ev = DetectionEvaluator(per_object=True)
     gt = {"boxes": torch.tensor([[10.0, 10.0, 40.0, 30.0], [100.0, 80.0, 50.0, 50.0]]), "obj_ids": torch.tensor([1, 2])}

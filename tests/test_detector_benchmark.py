@@ -7,7 +7,7 @@ import json
 import pytest
 
 from kpd6d.benchmarks import detector as bench
-from kpd6d.paths import config_dir
+from kpd6d.config import config_dir
 
 
 def test_detector_config_is_the_yaml_file():

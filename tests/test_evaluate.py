@@ -12,8 +12,8 @@ import trimesh
 
 from kpd6d.data import BopDataset
 from kpd6d.evaluation.bop19 import score_bop19_file
-from kpd6d.evaluation.evaluate import evaluate
 from kpd6d.evaluation.results_io import read_bop_results
+from kpd6d.evaluation.runner import evaluate
 from kpd6d.geometry import LINEMOD_K, bbox_from_points, pose_from_view, project_points
 from kpd6d.pipeline import PosePipeline
 from kpd6d.registry import DETECTORS
@@ -209,8 +209,8 @@ def test_kpd6d_evaluate_cli_with_a_real_untrained_kpd(tmp_path, monkeypatch, cap
 
 
 def test_projection_accuracy_at_5_10_15_px_and_report_columns(tmp_path):
-    from kpd6d.evaluation.evaluate import compute_metrics
     from kpd6d.evaluation.report import write_report_md
+    from kpd6d.evaluation.runner import compute_metrics
 
     recs = [{"obj_id": 1, "add": 1.0, "proj": p} for p in (3.0, 7.0, 12.0, 20.0)]
     recs += [{"obj_id": 2, "add": 1.0, "proj": p} for p in (9.9, float("inf"))]

@@ -5,7 +5,7 @@ import json
 import pytest
 from hydra import compose, initialize_config_dir
 
-from kpd6d.paths import config_dir
+from kpd6d.config import config_dir
 
 pytestmark = pytest.mark.usefixtures("one_torch_thread")
 

@@ -21,7 +21,7 @@ def test_wheel_ships_configs_and_cli_finds_them(tmp_path):
     subprocess.run([sys.executable, "-m", "pip", "install", "-q", "--no-deps", "--target", str(tmp_path / "site"),
                     str(wheel)], check=True, capture_output=True, timeout=300)
     code = ("import sys; sys.argv = ['kpd6d-train', '--cfg', 'job', 'stage=detector', 'detector=oracle']\n"
-            "import kpd6d.paths; print(kpd6d.paths.config_dir())\n"
+            "import kpd6d.config; print(kpd6d.config.config_dir())\n"
             "from kpd6d.cli.train import main; main()")
     out = subprocess.run([sys.executable, "-c", code], cwd=tmp_path, capture_output=True, text=True, timeout=300,
                          env={"PYTHONPATH": str(tmp_path / "site"), "PATH": "/usr/bin:/bin"})

@@ -10,9 +10,9 @@ import torch
 from omegaconf import OmegaConf
 from scipy.optimize import least_squares
 
+from kpd6d.config import config_dir
 from kpd6d.evaluation import add_error
 from kpd6d.geometry import LINEMOD_K, project_points, random_rotation
-from kpd6d.paths import config_dir
 from kpd6d.pnp import BatchPoseEstimate, PoseEstimate
 from kpd6d.pnp.checks import diagnose_solutions
 from kpd6d.registry import PNP_SOLVERS, build_from_cfg

@@ -10,7 +10,7 @@ import pytest
 from omegaconf import OmegaConf
 
 from kpd6d import registry as reg
-from kpd6d.registry import PNP_SOLVERS, REGISTRIES, Registry, UnknownNameError, build_from_cfg
+from kpd6d.registry import PNP_SOLVERS, REGISTRIES, SYMMETRIES, Registry, UnknownNameError, build_from_cfg
 
 
 def _fresh(modules=()):
@@ -211,6 +211,7 @@ def test_broken_plugin_names_itself_and_is_retried(monkeypatch):
 
 
 def test_the_seven_registries_exist():
-    assert set(REGISTRIES) == {"designator", "detector", "backbone", "decoder", "codec", "pnp", "symmetry"}
+    assert set(REGISTRIES) == {"designator", "detector", "backbone", "decoder", "codec", "pnp"}  # the conf/ groups
+    assert isinstance(SYMMETRIES, Registry)  # the seventh, without a group (handlers follow models_info)
     assert REGISTRIES["pnp"] is PNP_SOLVERS
     assert {"epnp", "iterative", "sqpnp", "epnp_ransac", "dlt", "weighted_lm"} <= set(PNP_SOLVERS.names())

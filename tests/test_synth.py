@@ -477,7 +477,7 @@ def test_cli_composes_and_generates(tmp_path, models_dir):
     from hydra import compose, initialize_config_dir
 
     from kpd6d.cli.generate import run
-    from kpd6d.paths import config_dir
+    from kpd6d.config import config_dir
 
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         cfg = compose("generate", overrides=[
@@ -496,7 +496,7 @@ def test_generate_yaml_defaults_match_the_python_api():
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
-    from kpd6d.paths import config_dir
+    from kpd6d.config import config_dir
     from kpd6d.synth.photometric import PhotometricConfig
 
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):

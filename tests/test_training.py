@@ -10,7 +10,7 @@ import pytest
 import torch
 from hydra import compose, initialize_config_dir
 
-from kpd6d.paths import config_dir
+from kpd6d.config import config_dir
 from kpd6d.training import (
     build_optimizer,
     build_scheduler,

@@ -7,7 +7,7 @@ import json
 import pytest
 from hydra import compose, initialize_config_dir
 
-from kpd6d.paths import config_dir
+from kpd6d.config import config_dir
 
 TINY = [
     "experiment=demo", "objects.obj_ids=[1]", "designator.num_keypoints=8",

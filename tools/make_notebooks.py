@@ -79,7 +79,7 @@ NB02 = [
              "models = {m.obj_id: m for m in test.load_models()}\n"
              "plt.figure(figsize=(5, 4))\nplt.imshow(draw_frame(test[0], models, test.load_keypoints()))\nplt.axis('off');"),
     ("md", "## Train a keypoint detector (briefly) through the same config as `kpd6d-train stage=kpd`"),
-    ("code", "from hydra import compose, initialize_config_dir\nfrom kpd6d.paths import config_dir\n"
+    ("code", "from hydra import compose, initialize_config_dir\nfrom kpd6d.config import config_dir\n"
              "from kpd6d.kpd.train import train_kpd\n\n"
              "kpd_ckpt = os.environ.get('KPD6D_KPD_CKPT')\n"
              "if not kpd_ckpt:\n"
@@ -108,7 +108,7 @@ NB02 = [
              "                   [(p['obj_id'], p['R'], p['t']) for p in poses if p['ok']])\n"
              "plt.figure(figsize=(5, 4))\nplt.imshow(img)\nplt.axis('off');"),
     ("md", "## Evaluate on the test split and plot accuracy–threshold curves"),
-    ("code", "from kpd6d.evaluation.evaluate import evaluate\n"
+    ("code", "from kpd6d.evaluation.runner import evaluate\n"
              "metrics = evaluate(pipe, test, work / 'eval', oracle=True, batch_size=4, progress=False)\n"
              "print({k: round(v, 3) for k, v in metrics['mean'].items() if isinstance(v, float)})\n"
              "fig, axes = plt.subplots(1, 2, figsize=(10, 3.5))\n"

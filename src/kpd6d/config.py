@@ -1,4 +1,5 @@
-"""Helpers shared by the config-driven entry points: plain values and the run folder."""
+"""Helpers shared by the config-driven entry points: where the Hydra configs are, plain values and
+the run folder."""
 
 from __future__ import annotations
 
@@ -8,7 +9,19 @@ from typing import Any
 
 from kpd6d.io import to_plain  # lives with the file writers; re-exported here
 
-__all__ = ["RENAMED_STAGE_KEYS", "check_stage_config", "renamed_overrides", "run_dir_of", "to_plain"]
+__all__ = ["RENAMED_STAGE_KEYS", "check_stage_config", "config_dir", "renamed_overrides", "run_dir_of", "to_plain"]
+
+
+def config_dir() -> Path:
+    """The ``conf/`` folder: ``kpd6d/conf`` in an installed wheel, else the checkout's top-level ``conf/``."""
+    pkg = Path(__file__).resolve().parent
+    for cand in (pkg / "conf", pkg.parent.parent / "conf"):
+        if (cand / "train.yaml").is_file():
+            return cand
+    raise FileNotFoundError(
+        f"kpd6d configs not found (looked in {pkg / 'conf'} and {pkg.parent.parent / 'conf'}); "
+        "reinstall the package (pip install .) or run from a source checkout"
+    )
 
 
 def run_dir_of(cfg: Any) -> Path:

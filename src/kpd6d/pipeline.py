@@ -26,7 +26,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from kpd6d.kpd.select import solve_top_l, top_l_mask
+from kpd6d.pnp.top_l import solve_top_l, top_l_mask
 
 __all__ = ["PipelineInputError", "PosePipeline", "default_device", "images_to_tensor"]
 

@@ -160,6 +160,8 @@ CODECS = Registry("codec", ("kpd6d.kpd.codec",))
 PNP_SOLVERS = Registry("PnP solver", ("kpd6d.pnp",))
 SYMMETRIES = Registry("symmetry handler", ("kpd6d.symmetry",))
 
+# config group in conf/ -> the registry its files build. SYMMETRIES has no group: an object's handler
+# follows from its models_info symmetries (kpd6d.symmetry.handler_for_model).
 REGISTRIES: dict[str, Registry] = {
     "designator": DESIGNATORS,
     "detector": DETECTORS,
@@ -167,7 +169,6 @@ REGISTRIES: dict[str, Registry] = {
     "decoder": DECODERS,
     "codec": CODECS,
     "pnp": PNP_SOLVERS,
-    "symmetry": SYMMETRIES,
 }
 
 _plugins_loaded = False

@@ -118,7 +118,7 @@ def evaluate_detector_on(det_ckpt, root: Path, split: str, obj_ids, max_frames=N
     """AP@0.5 (overall and per object), AP@0.5:0.95 and recall of a trained detector on a BOP split."""
     from kpd6d.detection import load_detector
     from kpd6d.detection.dataset import DetectionDataset
-    from kpd6d.detection.evaluate import evaluate_detector
+    from kpd6d.detection.metrics import evaluate_detector
 
     det = load_detector(det_ckpt)
     ds = DetectionDataset(root, split, obj_ids=obj_ids or det.obj_ids, input_size=det.input_size)
@@ -139,7 +139,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     from omegaconf import OmegaConf
 
     from kpd6d.data import BopDataset
-    from kpd6d.evaluation.evaluate import evaluate
+    from kpd6d.evaluation.runner import evaluate
     from kpd6d.pipeline import PosePipeline
 
     root = Path(cfg.data.root)

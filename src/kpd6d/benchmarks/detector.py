@@ -19,7 +19,7 @@ def detector_config(choice: str) -> dict:
     """The parameters of config choice ``conf/detector/<choice>.yaml`` (``name`` = registry name)."""
     from omegaconf import OmegaConf
 
-    from kpd6d.paths import config_dir
+    from kpd6d.config import config_dir
 
     path = config_dir() / "detector" / f"{choice}.yaml"
     if not path.is_file():
@@ -81,7 +81,7 @@ def main(argv: list[str]) -> int:
             p.error("accuracy mode needs both --checkpoint and --data")
         from kpd6d.detection import load_detector
         from kpd6d.detection.dataset import DetectionDataset
-        from kpd6d.detection.evaluate import evaluate_detector
+        from kpd6d.detection.metrics import evaluate_detector
 
         det = load_detector(a.checkpoint)
         ds = DetectionDataset(a.data, a.split, obj_ids=det.obj_ids, input_size=det.input_size)

@@ -34,10 +34,10 @@ def main(argv: list[str]) -> int:
     import torch
     from hydra import compose, initialize_config_dir
 
+    from kpd6d.config import config_dir
     from kpd6d.kpd.crops import KPDCropDataset
     from kpd6d.kpd.module import KPDModule
     from kpd6d.kpd.train import train_kpd
-    from kpd6d.paths import config_dir
     from kpd6d.synth import generate_dataset
 
     out = Path(args.out).resolve()

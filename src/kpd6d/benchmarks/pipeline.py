@@ -69,7 +69,7 @@ def time_batch(det, kpd, pnp, images, boxes, image_index, obj_ids, K, top_l, dev
     """Seconds per stage for one batch."""
     from kpd6d.geometry import affine_apply, invert_affine
     from kpd6d.kpd.crops import inference_crops
-    from kpd6d.kpd.select import top_l as select_top_l
+    from kpd6d.pnp.top_l import top_l as select_top_l
 
     t = {}
     _sync(device)

@@ -5,7 +5,7 @@ from __future__ import annotations
 import sys
 from collections.abc import Callable
 
-from kpd6d.paths import config_dir
+from kpd6d.config import config_dir
 
 
 def hydra_main(config_name: str) -> Callable[[Callable], Callable[[], None]]:

@@ -136,7 +136,7 @@ class DetectorModule(pl.LightningModule):
 
     # -- validation ---------------------------------------------------------------------------
     def on_validation_epoch_start(self) -> None:
-        from kpd6d.detection.evaluate import DetectionEvaluator
+        from kpd6d.detection.metrics import DetectionEvaluator
 
         self._evaluator = DetectionEvaluator(self.detector.score_threshold, self.box_stats_iou)
 

@@ -1,6 +1,6 @@
 """Evaluation reports: ``report.md`` (paper-style per-object table), accuracy-threshold plots and
 3D-box overlays (ground truth green, prediction blue), from a ``metrics.json`` dict written by
-:func:`kpd6d.evaluation.evaluate.evaluate`."""
+:func:`kpd6d.evaluation.runner.evaluate`."""
 
 from __future__ import annotations
 

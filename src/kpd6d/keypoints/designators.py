@@ -13,7 +13,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from kpd6d.keypoints.selection import PointMetric, farthest_point_sampling, uses_symmetry
+from kpd6d.keypoints.sampling import PointMetric, farthest_point_sampling, uses_symmetry
 from kpd6d.keypoints.sift import SiftDesignator
 from kpd6d.registry import DESIGNATORS
 

@@ -27,7 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from kpd6d.geometry import backproject, invert_pose, look_at_pose, transform_points
-from kpd6d.keypoints.selection import PointMetric, farthest_point_sampling, nms_select, uses_symmetry
+from kpd6d.keypoints.sampling import PointMetric, farthest_point_sampling, nms_select, uses_symmetry
 
 __all__ = ["SiftDesignator", "fibonacci_sphere", "snap_to_surface"]
 

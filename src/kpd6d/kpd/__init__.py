@@ -6,8 +6,8 @@ size — that the crops, the module and inference share), :mod:`~kpd6d.kpd.check
 checkpoint schema), :mod:`~kpd6d.kpd.backbones` (``BACKBONES``), :mod:`~kpd6d.kpd.heads` (heads and the
 network), :mod:`~kpd6d.kpd.crops` (crop dataset over BOP data), :mod:`~kpd6d.kpd.box_augment`
 (``jitter`` / ``pgpg``), :mod:`~kpd6d.kpd.augment` (kornia batch augmentation),
-:mod:`~kpd6d.kpd.select` (top-l + PnP), :mod:`~kpd6d.kpd.module` (``KPDModule``),
-:mod:`~kpd6d.kpd.train` (``train_kpd``). Submodules are imported on use (torch / Lightning are heavy).
+:mod:`~kpd6d.kpd.module` (``KPDModule``), :mod:`~kpd6d.kpd.train` (``train_kpd``). Top-l selection and
+PnP on it live in :mod:`kpd6d.pnp.top_l`. Submodules are imported on use (torch / Lightning are heavy).
 """
 
 from __future__ import annotations

@@ -215,7 +215,7 @@ class KPDModule(pl.LightningModule):
         :func:`kpd6d.evaluation.kpd_metrics.pose_metrics`: mean 2-D projection accuracy at 5 px,
         ADD(-S) accuracy at 0.1 d, and the PnP failure rate (a failed PnP counts as a miss)."""
         from kpd6d.evaluation.kpd_metrics import pose_metrics
-        from kpd6d.kpd.select import solve_top_l
+        from kpd6d.pnp.top_l import solve_top_l
 
         if self._pnp is None:
             from kpd6d.registry import PNP_SOLVERS, build_from_cfg

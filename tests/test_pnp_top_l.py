@@ -5,7 +5,7 @@ import pytest
 import torch
 
 from kpd6d.geometry import LINEMOD_K, project_points, random_rotation
-from kpd6d.kpd.select import solve_top_l, top_l
+from kpd6d.pnp import solve_top_l, top_l
 
 
 def test_top_l_numpy_and_torch():

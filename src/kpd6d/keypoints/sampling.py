@@ -1,4 +1,4 @@
-"""Keypoint selection shared by the designators: spatial NMS and farthest-point sampling, both
+"""Point sampling shared by the designators: spatial NMS and farthest-point sampling, both
 optionally symmetry-aware.
 
 Symmetry-aware selection measures distances between *orbits*: ``d(p, q) = min_S |S p - q|`` over the

@@ -1,0 +1,299 @@
+"""The evaluation loop: run a :class:`~kpd6d.pipeline.PosePipeline` over a BOP dataset and write
+``metrics.json``, ``results.csv`` (BOP format), ``report.md``, accuracy plots and overlays.
+
+Per evaluated GT instance (all instances of a frame, or with a targets file the ``inst_count`` most
+visible instances of each target object): ADD(-S) (ADD-S for symmetric objects) and the 2D
+projection error of the matched prediction; an instance with no prediction (not detected, or PnP
+not ok) gets infinite errors, i.e. counts as a failure. Predictions are matched to instances of the
+same object greedily in score order, each taking the free instance with the lowest ADD(-S).
+
+Predictions are appended to ``predictions.jsonl`` frame by frame; running again on the same
+``out_dir`` skips the frames already there (resume after interruption).
+"""
+
+from __future__ import annotations
+
+import json
+import os
+import time
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from kpd6d.evaluation.errors import add_error, adds_error, proj2d_error
+from kpd6d.evaluation.recall import add_s_accuracy, auc, proj2d_accuracy, recall_at
+from kpd6d.evaluation.results_io import PoseResult, write_bop_results
+from kpd6d.io import atomic_write_image, atomic_write_json
+
+__all__ = ["ADD_THRESHOLDS", "PX_THRESHOLDS", "compute_metrics", "eval_instances", "evaluate", "match_predictions"]
+
+PX_THRESHOLDS = np.linspace(0.0, 50.0, 51)  # 2D projection accuracy curve (px)
+ADD_THRESHOLDS = np.linspace(0.0, 0.5, 51)  # ADD(-S) accuracy curve (fraction of the diameter)
+MAX_EVAL_POINTS = 5000
+
+
+
+def eval_instances(frame) -> list:
+    """The GT instances a frame is evaluated on (targets: the inst_count most visible per target object)."""
+    if not frame.targets:
+        return list(frame.instances)
+    out = []
+    for oid, count in frame.targets.items():
+        insts = [i for i in frame.instances if i.obj_id == oid]
+        insts.sort(key=lambda i: -(i.visib_fract if i.visib_fract is not None else 1.0))
+        out.extend(insts[:count])
+    return out
+
+
+def oracle_targets(frame, instances) -> dict:
+    """GT boxes of ``instances`` for the oracle detector: the visible box (the object's box when no
+    scene_gt_info); instances with an empty visible box get none (fully occluded: not detected)."""
+    boxes, ids = [], []
+    for inst in instances:
+        box = inst.bbox_visib if inst.bbox_visib is not None else inst.bbox_obj
+        if box is None or np.asarray(box)[2:].min() <= 0:
+            continue  # not visible at all: the oracle has no box to give (counts as not detected)
+        boxes.append(np.asarray(box, dtype=np.float32))
+        ids.append(inst.obj_id)
+    return {"boxes": np.asarray(boxes, np.float32).reshape(-1, 4), "obj_ids": np.asarray(ids, np.int64)}
+
+
+def _eval_points(model) -> np.ndarray:
+    v = model.vertices
+    if len(v) > MAX_EVAL_POINTS:
+        v = v[np.random.default_rng(0).choice(len(v), MAX_EVAL_POINTS, replace=False)]
+    return v
+
+
+def match_predictions(instances, preds: Sequence[dict], points: dict, symmetric: dict, K) -> list[tuple[float, float]]:
+    """(ADD(-S) mm, 2D projection px) for every instance; unmatched instances get (inf, inf)."""
+    errs = [(np.inf, np.inf)] * len(instances)
+    free = set(range(len(instances)))
+    for p in sorted((p for p in preds if p.get("ok", True)), key=lambda p: -p["score"]):
+        cands = [j for j in free if instances[j].obj_id == p["obj_id"]]
+        if not cands:
+            continue
+        f = adds_error if symmetric[p["obj_id"]] else add_error
+        pts = points[p["obj_id"]]
+        add = [f(p["R"], p["t"], instances[j].R, instances[j].t, pts) for j in cands]
+        j = cands[int(np.argmin(add))]
+        errs[j] = (float(min(add)), proj2d_error(p["R"], p["t"], instances[j].R, instances[j].t, pts, K))
+        free.discard(j)
+    return errs
+
+
+def compute_metrics(records: list[dict], diameters: dict[int, float], names: dict[int, str] | None = None,
+                    symmetric: dict[int, bool] | None = None) -> dict:
+    """Per-object and mean metrics from ``records`` = [{obj_id, add, proj}] (errors; inf = failure)."""
+    names, symmetric = names or {}, symmetric or {}
+    per_object = {}
+    for oid in sorted({r["obj_id"] for r in records}):
+        add = np.array([r["add"] for r in records if r["obj_id"] == oid], dtype=np.float64)
+        proj = np.array([r["proj"] for r in records if r["obj_id"] == oid], dtype=np.float64)
+        d = diameters[oid]
+        per_object[str(oid)] = {
+            "name": names.get(oid, ""), "symmetric": bool(symmetric.get(oid, False)), "n": len(add),
+            "failures": int((~np.isfinite(add)).sum()),
+            "add_s_01d": add_s_accuracy(add, d, 0.1), "proj2d_5px": proj2d_accuracy(proj, 5.0),
+            "proj2d_10px": proj2d_accuracy(proj, 10.0), "proj2d_15px": proj2d_accuracy(proj, 15.0),
+            "auc_add_s": auc(add / d, 0.5), "auc_proj2d": auc(proj, 50.0),
+            "curves": {"proj2d": recall_at(proj, PX_THRESHOLDS).tolist(),
+                       "add_s": recall_at(add / d, ADD_THRESHOLDS).tolist()},
+        }
+    objs = list(per_object.values())
+
+    def mean(key):
+        return float(np.mean([o[key] for o in objs])) if objs else 0.0
+
+    return {
+        "per_object": per_object,
+        "mean": {
+            "n": int(sum(o["n"] for o in objs)),
+            "add_s_01d": mean("add_s_01d"), "proj2d_5px": mean("proj2d_5px"),
+            "proj2d_10px": mean("proj2d_10px"), "proj2d_15px": mean("proj2d_15px"),
+            "auc_add_s": mean("auc_add_s"), "auc_proj2d": mean("auc_proj2d"),
+            "curves": {k: np.mean([o["curves"][k] for o in objs], axis=0).tolist() if objs else []
+                       for k in ("proj2d", "add_s")},
+        },
+        "curves": {"proj2d_thresholds": PX_THRESHOLDS.tolist(), "add_s_thresholds": ADD_THRESHOLDS.tolist()},
+        "failures": int(sum(o["failures"] for o in objs)),
+    }
+
+
+def _load_done(path: Path) -> dict[tuple[int, int], dict]:
+    done = {}
+    if path.is_file():
+        for line in path.read_text().splitlines():
+            try:
+                rec = json.loads(line)
+            except json.JSONDecodeError:
+                continue  # a line cut by an interruption: that frame is redone
+            done[(rec["scene_id"], rec["im_id"])] = rec
+    return done
+
+
+def _batches(frames, batch_size):
+    """Consecutive frames with one image size (read from the image when loaded)."""
+    for i in range(0, len(frames), batch_size):
+        yield frames[i:i + batch_size]
+
+
+_SETTINGS_FILE = "settings.json"
+
+
+def _check_resumable(out_dir: Path, run_info: dict | None, oracle: bool) -> None:
+    """Predictions in ``out_dir`` are reused only when they were made with the same settings
+    (``run_info`` minus the device): rerunning with another solver, top-l, refinement or checkpoint
+    into the same folder is an error that names the differences, never a silent mix."""
+    import json
+
+    settings = json.loads(json.dumps({k: v for k, v in (run_info or {}).items() if k != "device"} | {"oracle": oracle},
+                                     default=str))
+    path = out_dir / _SETTINGS_FILE
+    if path.is_file():
+        old = json.loads(path.read_text())
+        diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+        if diff:
+            raise ValueError(f"{out_dir} holds predictions made with other settings ({', '.join(diff)}: "
+                             + "; ".join(f"{k} was {old.get(k)!r}, now {settings.get(k)!r}" for k in diff)
+                             + "); evaluate into a new folder")
+    elif (out_dir / "predictions.jsonl").is_file():
+        raise ValueError(f"{out_dir} holds predictions.jsonl without {_SETTINGS_FILE}: cannot tell which settings "
+                         "made them; evaluate into a new folder")
+    else:
+        atomic_write_json(path, settings)
+
+
+def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = False, batch_size: int = 1,
+             max_frames: int | None = None, n_overlays: int = 6, run_info: dict | None = None, progress: bool = True,
+             extra_metrics: dict | None = None) -> dict:
+    """Evaluate ``pipeline`` on ``dataset`` (a :class:`kpd6d.data.BopDataset`); writes everything to ``out_dir``.
+
+    ``oracle``: give the detector the GT boxes (for the ``oracle`` detector). BOP19 AR_MSSD / AR_MSPD
+    are computed on the evaluated frames only (their targets are written to
+    ``test_targets_bop19.json`` in ``out_dir``). ``extra_metrics`` (e.g. ``{"detector": {...}}``, the
+    detector's own AP on the same frames) go into metrics.json and the report. Returns the metrics dict.
+    """
+    from tqdm import tqdm
+
+    from kpd6d.evaluation.bop19 import score_bop19_file
+    from kpd6d.evaluation.report import plot_curves, write_report_md
+    from kpd6d.visualize import draw_overlay
+
+    out_dir = Path(out_dir)
+    data_root = Path(dataset.root).resolve()
+    if out_dir.resolve() == data_root or data_root in out_dir.resolve().parents:
+        raise ValueError(f"evaluate: the output folder {str(out_dir)!r} is inside the dataset {str(dataset.root)!r}; "
+                         "outputs never go into an input dataset (they would overwrite its files, e.g. "
+                         "test_targets_bop19.json): choose an out_dir outside it")
+    out_dir.mkdir(parents=True, exist_ok=True)
+    frames = list(dataset)[: max_frames if max_frames else None]
+    if not frames:
+        raise ValueError(f"{dataset!r}: no frames to evaluate")
+    obj_ids = sorted({i.obj_id for f in frames for i in eval_instances(f)})
+    models = {m.obj_id: m for m in dataset.load_models(obj_ids)}
+    points = {o: _eval_points(m) for o, m in models.items()}
+    symmetric = {o: m.is_symmetric for o, m in models.items()}
+
+    pred_path = out_dir / "predictions.jsonl"
+    _check_resumable(out_dir, run_info, oracle)
+    done = _load_done(pred_path)
+    todo = [f for f in frames if (f.scene_id, f.im_id) not in done]
+    if pred_path.is_file() and pred_path.stat().st_size:
+        with pred_path.open("rb") as f:
+            f.seek(-1, os.SEEK_END)
+            cut = f.read(1) != b"\n"
+        if cut:  # a line cut by an interruption: end it, so the next record starts on its own line
+            with pred_path.open("a") as f:
+                f.write("\n")
+    if done and progress:
+        print(f"evaluate: resuming {out_dir}: {len(frames) - len(todo)} of {len(frames)} frames already in "
+              f"{pred_path.name}", flush=True)
+    with pred_path.open("a") as fout, tqdm(total=len(frames), initial=len(frames) - len(todo), desc="evaluate",
+                                           unit="frame", disable=not progress) as bar:
+        for batch in _batches(todo, max(1, int(batch_size))):
+            images = [f.load_rgb() for f in batch]
+            sizes = {im.shape for im in images}
+            groups = [list(range(len(batch)))] if len(sizes) == 1 else [[i] for i in range(len(batch))]
+            for g in groups:
+                targets = [oracle_targets(batch[i], eval_instances(batch[i])) for i in g] if oracle else None
+                t0 = time.perf_counter()
+                preds = pipeline.predict_batch([images[i] for i in g], np.stack([batch[i].K for i in g]), targets)
+                dt = (time.perf_counter() - t0) / len(g)
+                timings = {k: v / len(g) for k, v in getattr(pipeline, "last_timings", {}).items()}
+                for i, ps in zip(g, preds):
+                    rec = {"scene_id": batch[i].scene_id, "im_id": batch[i].im_id, "time": dt, "stages": timings,
+                           "preds": [{"obj_id": int(p["obj_id"]), "score": float(p["score"]), "ok": bool(p["ok"]),
+                                      "R": np.asarray(p["R"]).tolist(), "t": np.asarray(p["t"]).tolist()} for p in ps]}
+                    fout.write(json.dumps(rec) + "\n")
+                    fout.flush()
+                    done[(rec["scene_id"], rec["im_id"])] = rec
+                bar.update(len(g))
+
+    # errors and metrics
+    records, results = [], []
+    for f in frames:
+        rec = done[(f.scene_id, f.im_id)]
+        preds = [{**p, "R": np.asarray(p["R"], float), "t": np.asarray(p["t"], float)} for p in rec["preds"]]
+        insts = eval_instances(f)
+        for inst, (add, proj) in zip(insts, match_predictions(insts, preds, points, symmetric, f.K)):
+            records.append({"scene_id": f.scene_id, "im_id": f.im_id, "obj_id": inst.obj_id, "add": add, "proj": proj})
+        for p in preds:
+            if p["ok"]:
+                results.append(PoseResult(f.scene_id, f.im_id, p["obj_id"], p["score"], p["R"], p["t"], rec["time"]))
+    metrics = compute_metrics(records, {o: m.diameter for o, m in models.items()},
+                              {o: m.name for o, m in models.items()}, symmetric)
+    write_bop_results(out_dir / "results.csv", results)
+
+    # BOP19 scores of the written results.csv, on the evaluated frames' targets (the dataset's targets
+    # file when it was read with one, else derived from the GT: instances with visib_fract >= 0.1)
+    tg: dict[tuple[int, int, int], int] = {}
+    for f in frames:
+        if f.targets:
+            for oid, c in f.targets.items():
+                tg[(f.scene_id, f.im_id, oid)] = c
+        else:
+            for inst in f.instances:
+                if inst.visib_fract is None or inst.visib_fract >= 0.1:
+                    tg[(f.scene_id, f.im_id, inst.obj_id)] = tg.get((f.scene_id, f.im_id, inst.obj_id), 0) + 1
+    targets_file = out_dir / "test_targets_bop19.json"
+    atomic_write_json(targets_file, [{"scene_id": s, "im_id": i, "obj_id": o, "inst_count": c}
+                                for (s, i, o), c in sorted(tg.items())])
+    try:
+        bop = score_bop19_file(out_dir / "results.csv", dataset.root, split=dataset.split,
+                               targets_filename=str(targets_file.resolve()))
+    except Exception as exc:  # scoring is a summary; never lose the metrics above over it
+        bop = {"error": f"{type(exc).__name__}: {exc}"}
+    metrics["bop19"] = {k: bop[k] for k in ("ar_mssd", "ar_mspd", "vsd", "n_targets", "error") if k in bop}
+    for oid, o in (bop.get("per_object") or {}).items():
+        if oid in metrics["per_object"]:
+            metrics["per_object"][oid]["ar_mssd"] = o["ar_mssd"]
+            metrics["per_object"][oid]["ar_mspd"] = o["ar_mspd"]
+    if "ar_mssd" in bop:
+        metrics["mean"]["ar_mssd"], metrics["mean"]["ar_mspd"] = bop["ar_mssd"], bop["ar_mspd"]
+
+    # speed
+    recs = [done[(f.scene_id, f.im_id)] for f in frames]
+    total = sum(r["time"] for r in recs)
+    metrics["fps"] = len(recs) / total if total > 0 else None
+    stage_keys = sorted({k for r in recs for k in r.get("stages", {})})
+    metrics["stage_seconds_per_frame"] = {k: float(np.mean([r["stages"].get(k, 0.0) for r in recs])) for k in stage_keys}
+    metrics["run"] = {**(run_info or {}), "dataset": str(dataset.root), "split": dataset.split, "frames": len(frames),
+                      "batch_size": batch_size, "oracle": oracle}
+    metrics.update(extra_metrics or {})
+    atomic_write_json(out_dir / "metrics.json", metrics)
+
+    # plots, overlays, report
+    plot_curves(metrics, out_dir)
+    corners = {o: m.bbox_corners for o, m in models.items()}
+    overlays = []
+    for f in frames[: max(0, int(n_overlays))]:
+        rec = done[(f.scene_id, f.im_id)]
+        img = draw_overlay(f.load_rgb(), f.K, corners, [(i.obj_id, i.R, i.t) for i in eval_instances(f)],
+                           [(p["obj_id"], np.asarray(p["R"]), np.asarray(p["t"])) for p in rec["preds"] if p["ok"]])
+        name = f"overlays/{f.scene_id:06d}_{f.im_id:06d}.png"
+        atomic_write_image(out_dir / name, img)
+        overlays.append(name)
+    write_report_md(metrics, out_dir / "report.md", overlays)
+    return metrics

@@ -248,3 +248,35 @@ print("BAD", bad)
     res = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "BAD []" in res.stdout, res.stdout
+
+
+def test_export_cli_then_predict_cli_on_each_backend(models, tmp_path, monkeypatch):
+    """kpd6d-export, then kpd6d-predict backend=torch|onnxruntime|openvino: the same poses.json."""
+    import cv2
+
+    from kpd6d.cli.export import main as export_main
+    from kpd6d.cli.predict import main as predict_main
+
+    d = models["dir"]
+    monkeypatch.setattr(sys, "argv", ["kpd6d-export", f"kpd_ckpt={d / 'kpd.ckpt'}", f"detector_ckpt={d / 'det.pt'}",
+                                      f"hydra.run.dir={tmp_path / 'exp'}"])
+    export_main()
+    assert json.loads((tmp_path / "exp" / "kpd6d_export.json").read_text())["detector"]["obj_ids"] == [3, 7]
+    cv2.imwrite(str(tmp_path / "in.png"), _image(6)[:, :, ::-1])
+    common = [f"input={tmp_path / 'in.png'}", "progress=false", "overlays=false", "select.top_l=6", "pnp=epnp"]
+    poses = {}
+    for backend in ("torch", *BACKENDS):
+        run = tmp_path / backend
+        args = ([f"kpd_ckpt={d / 'kpd.ckpt'}", f"detector_ckpt={d / 'det.pt'}", "device=cpu"] if backend == "torch"
+                else [f"backend={backend}", f"export_dir={tmp_path / 'exp'}"])  # no checkpoints needed
+        monkeypatch.setattr(sys, "argv", ["kpd6d-predict", *common, *args, f"hydra.run.dir={run}"])
+        predict_main()
+        poses[backend] = json.loads((run / "poses.json").read_text())["frames"][0]["poses"]
+    assert len(poses["torch"]) >= 1
+    for backend in BACKENDS:
+        assert [p["obj_id"] for p in poses[backend]] == [p["obj_id"] for p in poses["torch"]]
+        for p, q in zip(poses[backend], poses["torch"]):
+            assert p["ok"] == q["ok"]
+            np.testing.assert_allclose(p["box"], q["box"], atol=0.01)
+            if q["ok"]:
+                np.testing.assert_allclose(p["t"], q["t"], atol=0.1)

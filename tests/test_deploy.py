@@ -153,7 +153,7 @@ def test_numpy_ops_match_torch():
         np.testing.assert_allclose(resize_bilinear_antialias(img.numpy(), size), ref, atol=1e-5)
     codec = HeatmapCodec(input_size=32, out_stride=4, crop_scale=1.3)
     boxes = np.array([[10.0, 5.0, 30.0, 20.0], [-8.0, 30.0, 25.0, 40.0], [40.2, 11.7, 13.3, 9.1]])
-    crops, A = inference_crops(img, torch.as_tensor(boxes), torch.zeros(3, dtype=torch.long), codec)
+    crops, _ = inference_crops(img, torch.as_tensor(boxes), torch.zeros(3, dtype=torch.long), codec)
     mine = warp_affine_bilinear(img[0].permute(1, 2, 0).numpy(), codec.crop_affine(boxes), 32)
     np.testing.assert_allclose(mine, crops.numpy(), atol=1e-4)
     # peaked maps with noise: each decoder agrees with its torch twin within 0.01 heatmap px
@@ -224,7 +224,7 @@ def test_from_export_torch_backend_loads_the_source_checkpoints(models):
     assert isinstance(pipe, PosePipeline) and pipe.kpd.obj_ids == [3, 7]
     with pytest.raises(ValueError, match="backend"):
         PosePipeline.from_export(models["export"], backend="tensorrt")
-    with pytest.raises(FileNotFoundError, match="kpd6d_export.json"):
+    with pytest.raises(FileNotFoundError, match=r"kpd6d_export\.json"):
         PosePipeline.from_export(models["dir"], backend="onnxruntime")
 
 

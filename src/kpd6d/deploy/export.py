@@ -157,7 +157,7 @@ def export_models(kpd_ckpt: str | os.PathLike, detector_ckpt: str | os.PathLike 
     from kpd6d.kpd.module import KPDModule
 
     try:
-        import onnx  # noqa: F401 - torch.onnx.export needs it
+        import onnx  # torch.onnx.export needs it
     except ImportError as exc:
         raise ImportError("kpd6d export needs the onnx package: pip install kpd6d[deploy]") from exc
     out = Path(out_dir)

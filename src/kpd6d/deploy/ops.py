@@ -86,7 +86,7 @@ def resize_bilinear_antialias(images: np.ndarray, size: tuple[int, int]) -> np.n
     """(B, C, H, W) float32 → (B, C, h, w) for ``size`` = (w, h): PyTorch's bilinear
     ``align_corners=False, antialias=True`` interpolation (separable; width first)."""
     w, h = int(size[0]), int(size[1])
-    B, C, H, W = images.shape
+    H, W = images.shape[-2:]
     if (W, H) == (w, h):
         return images
     ix, wx = _aa_taps(W, w)

@@ -195,7 +195,7 @@ class RuntimeDetector:
         n = self.node
         if self.session is None:
             return oracle_detections(targets, self.obj_ids, int(n.get("max_detections", 100)))
-        B, H, W, _ = images.shape
+        H, W = images.shape[1:3]
         w, h = n["input_size"]
         x = resize_bilinear_antialias(np.ascontiguousarray(images.transpose(0, 3, 1, 2)), (w, h))
         heat, wh, off = self.session(x)

@@ -86,7 +86,7 @@ def _gaussian_blur(hm: np.ndarray, sigma: float) -> np.ndarray:
     g = np.exp(-(x**2) / (2 * sigma**2))
     g = (g / g.sum()).astype(np.float32)
     r = k // 2
-    B, K, H, W = hm.shape
+    H, W = hm.shape[-2:]
     p = np.pad(hm, ((0, 0), (0, 0), (0, 0), (r, r)), mode="edge")
     out = sum(g[i] * p[..., i:i + W] for i in range(k))
     p = np.pad(out, ((0, 0), (0, 0), (r, r), (0, 0)), mode="edge")

@@ -280,3 +280,20 @@ def test_export_cli_then_predict_cli_on_each_backend(models, tmp_path, monkeypat
             np.testing.assert_allclose(p["box"], q["box"], atol=0.01)
             if q["ok"]:
                 np.testing.assert_allclose(p["t"], q["t"], atol=0.1)
+
+
+def test_benchmark_pipeline_reports_backends_side_by_side(capsys):
+    from kpd6d.benchmarks.pipeline import main
+
+    assert main(["--configs", "tiny", "--batch-sizes", "1", "--repeats", "1", "--warmup", "1", "--objects", "2",
+                 "--keypoints", "8", "--top-l", "6", "--device", "cpu", "--threads", "1",
+                 "--backends", "torch,onnxruntime,openvino"]) == 0
+    out = capsys.readouterr().out
+    assert "| config | backend | device |" in out and "x torch |" in out
+    for backend in BACKENDS:
+        line = next(ln for ln in out.splitlines() if ln.startswith(f"| tiny | {backend} | cpu | 1 | 2 |"))
+        ratio = float(line.rstrip(" |").rsplit("|", 1)[1])
+        assert ratio > 0
+    assert "| tiny | torch | cpu | 1 | 2 |" in out
+    with pytest.raises(SystemExit):
+        main(["--backends", "tensorrt"])

@@ -297,3 +297,29 @@ def test_benchmark_pipeline_reports_backends_side_by_side(capsys):
     assert "| tiny | torch | cpu | 1 | 2 |" in out
     with pytest.raises(SystemExit):
         main(["--backends", "tensorrt"])
+
+
+def test_evaluate_cli_runs_an_export_without_checkpoints(tmp_path, monkeypatch):
+    """kpd6d-evaluate backend=onnxruntime export_dir=... (no kpd_ckpt; oracle boxes) evaluates every
+    instance and records the backend (an untrained KPD on black images: the metrics say little, the
+    pose parity is the end-to-end tests' job)."""
+    from test_evaluate import _tiny_kpd_checkpoint, make_dataset
+
+    from kpd6d.cli.evaluate import main
+    from kpd6d.deploy.export import export_models
+
+    root, _, _ = make_dataset(tmp_path / "ds", n_frames=2)
+    ckpt = _tiny_kpd_checkpoint(tmp_path / "kpd.ckpt")
+    export_models(ckpt, "oracle", tmp_path / "export")
+    common = [f"data.root={root}", "progress=false", "overlays=0", "pnp=epnp", "select.top_l=8"]
+    metrics = {}
+    for backend, args in (("torch", [f"kpd_ckpt={ckpt}", "device=cpu"]),
+                          ("onnxruntime", ["backend=onnxruntime", f"export_dir={tmp_path / 'export'}"])):
+        monkeypatch.setattr(sys, "argv", ["kpd6d-evaluate", *common, *args, f"hydra.run.dir={tmp_path / backend}"])
+        main()
+        metrics[backend] = json.loads((tmp_path / backend / "metrics.json").read_text())
+    got, want = metrics["onnxruntime"], metrics["torch"]
+    assert got["run"]["backend"] == "onnxruntime" and "backend" not in want["run"]
+    assert got["mean"]["n"] == want["mean"]["n"] == 4
+    for key in ("add_s_01d", "proj2d_5px"):
+        assert got["mean"][key] == pytest.approx(want["mean"][key], abs=1e-9), key

@@ -303,10 +303,9 @@ def test_evaluate_cli_runs_an_export_without_checkpoints(tmp_path, monkeypatch):
     """kpd6d-evaluate backend=onnxruntime export_dir=... (no kpd_ckpt; oracle boxes) evaluates every
     instance and records the backend (an untrained KPD on black images: the metrics say little, the
     pose parity is the end-to-end tests' job)."""
-    from test_evaluate import _tiny_kpd_checkpoint, make_dataset
-
     from kpd6d.cli.evaluate import main
     from kpd6d.deploy.export import export_models
+    from test_evaluate import _tiny_kpd_checkpoint, make_dataset
 
     root, _, _ = make_dataset(tmp_path / "ds", n_frames=2)
     ckpt = _tiny_kpd_checkpoint(tmp_path / "kpd.ckpt")

@@ -322,3 +322,15 @@ def test_evaluate_cli_runs_an_export_without_checkpoints(tmp_path, monkeypatch):
     assert got["mean"]["n"] == want["mean"]["n"] == 4
     for key in ("add_s_01d", "proj2d_5px"):
         assert got["mean"][key] == pytest.approx(want["mean"][key], abs=1e-9), key
+
+
+@pytest.mark.parametrize("backend", BACKENDS)
+def test_a_missing_backend_package_says_what_to_install(backend, tmp_path, monkeypatch):
+    from kpd6d.deploy.runtime import BackendUnavailableError, Session
+
+    (tmp_path / "m.onnx").write_bytes(b"")
+    monkeypatch.setitem(sys.modules, backend, None)  # import fails as if not installed
+    with pytest.raises(BackendUnavailableError, match=r"pip install kpd6d\[deploy\]"):
+        Session(tmp_path / "m.onnx", backend)
+    with pytest.raises(ValueError, match="backend 'tensorrt' unknown"):
+        Session(tmp_path / "m.onnx", "tensorrt")

@@ -82,7 +82,8 @@ def _export(module: nn.Module, example: torch.Tensor, path: Path, input_name: st
 
 
 def export_kpd(kpd, out_dir: str | os.PathLike, opset: int = DEFAULT_OPSET) -> dict[str, Any]:
-    """Export a :class:`~kpd6d.kpd.module.KPDModule` to ``out_dir/kpd.onnx``; returns its sidecar node."""
+    """Export a :class:`~kpd6d.kpd.module.KPDModule` to ``out_dir/kpd.onnx``; returns its sidecar node.
+    (The module is left on the CPU, in eval mode.)"""
     kpd = kpd.cpu().eval()
     net = kpd.net.to(memory_format=torch.contiguous_format)
     S = kpd.codec.input_size
@@ -107,7 +108,8 @@ def export_kpd(kpd, out_dir: str | os.PathLike, opset: int = DEFAULT_OPSET) -> d
 
 
 def export_detector(det, out_dir: str | os.PathLike, opset: int = DEFAULT_OPSET) -> dict[str, Any]:
-    """Export a CenterNet detector to ``out_dir/detector.onnx``; returns its sidecar node."""
+    """Export a CenterNet detector to ``out_dir/detector.onnx``; returns its sidecar node.
+    (The detector is left on the CPU, in eval mode.)"""
     from kpd6d.detection.centernet import CenterNet
 
     spec = det.spec() if hasattr(det, "spec") else {}

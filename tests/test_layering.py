@@ -10,8 +10,9 @@ Layers, lowest first (a "unit" is a top-level module ``kpd6d/X.py`` or a subpack
     L2  keypoints
     L3  data, synth                              BOP datasets; the generator that writes them
     L4  evaluation, detection, kpd               metrics; the two trained stages
-    L5  pipeline, predict, benchmarks, workflow  stages put together
-    L6  cli                                      Hydra entry points, imported by no library code
+    L5  deploy                                   ONNX export of the stages; the torch-free runtime
+    L6  pipeline, predict, benchmarks, workflow  stages put together
+    L7  cli                                      Hydra entry points, imported by no library code
 
 Rules:
 
@@ -31,6 +32,9 @@ Rules:
 * every unit must appear in the table (a new package gets a layer on purpose, not by default);
 * a module renamed away keeps its old path only as a re-export for outside users (``MOVED``: old ->
   new); no library module imports an old path.
+* ``kpd6d.deploy.runtime`` (the exported models' runtime) imports, at module level and through every
+  kpd6d module it imports at module level, neither torch (nor kornia / Lightning / torchvision) nor
+  ``kpd6d.kpd.module`` (tests/test_deploy.py also checks ``sys.modules`` after a prediction).
 
 The registry's provider lists (``Registry("backbone", ("kpd6d.kpd.backbones",))``) are names imported
 on first lookup, i.e. the plugin mechanism (providers register themselves into a lower-layer table);
@@ -56,6 +60,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("keypoints",),
     ("data", "synth"),
     ("evaluation", "detection", "kpd"),
+    ("deploy",),
     ("pipeline", "predict", "benchmarks", "workflow"),
     ("cli",),
 ]
@@ -246,6 +251,60 @@ def test_moved_module_reexports_the_new_one(old):
 
 def test_io_is_a_leaf(imports):
     assert not [i for i in imports if i["module"] == "kpd6d.io"], "kpd6d.io imports no other kpd6d module"
+
+
+TORCH_PACKAGES = ("torch", "torchvision", "kornia", "pytorch_lightning", "lightning", "timm")
+
+
+def module_level_closure(start: str, src: Path = SRC) -> tuple[set[str], set[str]]:
+    """(kpd6d modules, third-party top-level packages) that ``import start`` imports at module level,
+    following kpd6d modules (and the packages above them) transitively."""
+    seen: set[str] = set()
+    third: set[str] = set()
+    todo = [start]
+    while todo:
+        mod = todo.pop()
+        if mod in seen:
+            continue
+        seen.add(mod)
+        parts = mod.split(".")
+        todo += [".".join(parts[:i]) for i in range(1, len(parts))]  # parent packages run first
+        rel = Path(*parts[1:]) if len(parts) > 1 else Path()
+        path = src / rel / "__init__.py" if (src / rel / "__init__.py").is_file() else src / rel.with_suffix(".py")
+        if not path.is_file():
+            continue
+        tree = ast.parse(path.read_text())
+        parents = {child: node for node in ast.walk(tree) for child in ast.iter_child_nodes(node)}
+        is_pkg = path.name == "__init__.py"
+        for node in ast.walk(tree):
+            if not isinstance(node, (ast.Import, ast.ImportFrom)) or not _is_module_level(node, parents):
+                continue
+            if isinstance(node, ast.Import):
+                names = [a.name for a in node.names]
+            elif node.level:
+                base = parts if is_pkg else parts[:-1]
+                base = base[: len(base) - (node.level - 1)]
+                names = [".".join(base + ([node.module] if node.module else []))]
+            else:
+                names = [node.module or ""]
+                if node.module and node.module.startswith("kpd6d"):  # from kpd6d.x import submodule
+                    names += [f"{node.module}.{a.name}" for a in node.names
+                              if (src / Path(*node.module.split(".")[1:]) / f"{a.name}.py").is_file()]
+            for n in names:
+                if n == "kpd6d" or n.startswith("kpd6d."):
+                    todo.append(n)
+                elif n and n != "__future__":
+                    third.add(n.split(".")[0])
+    return seen, third
+
+
+def test_deploy_runtime_imports_no_torch_and_no_kpd_module():
+    mods, third = module_level_closure("kpd6d.deploy.runtime")
+    assert {"kpd6d.kpd.decoders_numpy", "kpd6d.geometry", "kpd6d.deploy.ops"} <= mods  # the closure is followed
+    assert not set(third) & set(TORCH_PACKAGES), f"kpd6d.deploy.runtime imports {sorted(set(third) & set(TORCH_PACKAGES))}"
+    assert "kpd6d.kpd.module" not in mods
+    # and the check can fail: the export module imports torch
+    assert "torch" in module_level_closure("kpd6d.deploy.export")[1]
 
 
 # ---------------------------------------------------------------------------------------------

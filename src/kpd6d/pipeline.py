@@ -111,6 +111,47 @@ class PosePipeline:
             det = load_detector(detector, obj_ids=obj_ids, map_location=device, **detector_overrides)
         return cls(det, kpd_module, pnp=pnp, top_l=top_l, device=device, refine_boxes=refine_boxes)
 
+    @classmethod
+    def from_export(cls, export_dir: str | os.PathLike, backend: str = "onnxruntime", *, pnp: Any = "epnp_ransac",
+                    top_l: int | None = 20, detector: str = "export", obj_ids: Sequence[int] | None = None,
+                    refine_boxes: int = 0, device: str | torch.device | None = None, threads: int | None = None,
+                    **detector_overrides: Any):
+        """A pipeline from a ``kpd6d-export`` folder on ``backend`` (``kpd6d.deploy.BACKENDS``).
+
+        ``onnxruntime`` / ``openvino``: a :class:`kpd6d.deploy.runtime.RuntimePipeline` (the same
+        interface and pose dicts, numpy, no torch); ``torch``: this class on the checkpoints the export
+        was made from. ``detector="oracle"``: GT boxes from ``targets`` instead of the exported detector.
+        """
+        from kpd6d.deploy import BACKENDS
+        from kpd6d.deploy.runtime import RuntimePipeline, read_sidecar
+
+        if backend not in BACKENDS:
+            raise PipelineInputError(f"backend {backend!r} unknown; known: {', '.join(BACKENDS)}")
+        if backend != "torch":
+            return RuntimePipeline(export_dir, backend, pnp=pnp, top_l=top_l, refine_boxes=refine_boxes,
+                                   detector=detector, obj_ids=obj_ids, threads=threads, **detector_overrides)
+        src = read_sidecar(export_dir)["source"]
+        det = "oracle" if detector == "oracle" or not src.get("detector_ckpt") else src["detector_ckpt"]
+        return cls.from_checkpoints(det, src["kpd_ckpt"], pnp=pnp, top_l=top_l, device=device, obj_ids=obj_ids,
+                                    refine_boxes=refine_boxes, **detector_overrides)
+
+    @classmethod
+    def for_backend(cls, backend: str = "torch", *, detector_ckpt: Any, kpd_ckpt: Any = None, export_dir: Any = None,
+                    **kwargs: Any):
+        """What ``kpd6d-evaluate`` / ``kpd6d-predict`` build: ``backend=torch`` → :meth:`from_checkpoints`
+        (``detector_ckpt``, ``kpd_ckpt``); otherwise :meth:`from_export` on ``export_dir`` (with the
+        oracle's GT boxes when ``detector_ckpt`` is ``"oracle"``)."""
+        backend = str(backend or "torch")
+        if backend == "torch":
+            if kpd_ckpt is None:
+                raise PipelineInputError("backend=torch needs kpd_ckpt=<KPD checkpoint>")
+            return cls.from_checkpoints(detector_ckpt, kpd_ckpt, **kwargs)
+        if not export_dir:
+            raise PipelineInputError(f"backend={backend} needs export_dir=<a kpd6d-export folder>")
+        kwargs.pop("device", None)
+        return cls.from_export(export_dir, backend, detector="oracle" if str(detector_ckpt) == "oracle" else "export",
+                               **kwargs)
+
     # -- inference ------------------------------------------------------------------------------
     def __call__(self, image: np.ndarray, K, targets: dict | None = None) -> list[dict]:
         """Poses of the objects in one uint8 RGB image with intrinsics ``K`` (3, 3)."""

@@ -208,12 +208,17 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
 
     from kpd6d.pipeline import PosePipeline
 
-    if str(cfg.detector_ckpt) == "oracle":
+    backend = str(cfg.get("backend") or "torch")
+    torch_backend = backend == "torch"  # the other backends run an export (export_dir=): no checkpoints needed
+    det = OmegaConf.select(cfg, "detector_ckpt", default=None, throw_on_missing=torch_backend)
+    if str(det) == "oracle":
         raise ValueError("kpd6d-predict needs a trained detector (detector_ckpt=<file>): the oracle needs GT boxes")
     K = load_intrinsics(cfg.camera)
-    pipe = PosePipeline.from_checkpoints(cfg.detector_ckpt, cfg.kpd_ckpt, pnp=OmegaConf.to_container(cfg.pnp, resolve=True),
-                                         top_l=cfg.select.top_l, refine_boxes=int(cfg.get("refine_boxes", 0) or 0),
-                                         device=cfg.device)
+    pipe = PosePipeline.for_backend(backend, detector_ckpt=det,
+                                    kpd_ckpt=OmegaConf.select(cfg, "kpd_ckpt", default=None, throw_on_missing=torch_backend),
+                                    export_dir=cfg.get("export_dir"), pnp=OmegaConf.to_container(cfg.pnp, resolve=True),
+                                    top_l=cfg.select.top_l, refine_boxes=int(cfg.get("refine_boxes", 0) or 0),
+                                    device=cfg.device)
     return predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=int(cfg.batch_size),
                           overlays=bool(cfg.overlays), progress=bool(cfg.progress),
                           stop_on_error=bool(cfg.get("stop_on_error", False)))

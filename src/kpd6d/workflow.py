@@ -151,17 +151,23 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     pnp_cfg = OmegaConf.to_container(cfg.pnp, resolve=True)
     top_l = cfg.select.top_l
     obj_ids = list(cfg.data.obj_ids) if cfg.data.obj_ids else None
-    pipeline = PosePipeline.from_checkpoints(cfg.detector_ckpt, cfg.kpd_ckpt, pnp=pnp_cfg, top_l=top_l,
-                                             device=cfg.device, obj_ids=obj_ids,
-                                             refine_boxes=int(cfg.get("refine_boxes", 0) or 0))
+    backend = str(cfg.get("backend") or "torch")
+    kpd_ckpt = OmegaConf.select(cfg, "kpd_ckpt", default=None, throw_on_missing=backend == "torch")
+    pipeline = PosePipeline.for_backend(backend, detector_ckpt=cfg.detector_ckpt, kpd_ckpt=kpd_ckpt,
+                                        export_dir=cfg.get("export_dir"), pnp=pnp_cfg, top_l=top_l,
+                                        device=cfg.device, obj_ids=obj_ids,
+                                        refine_boxes=int(cfg.get("refine_boxes", 0) or 0))
     covered = sorted(int(o) for o in pipeline.kpd.keypoints_3d)
     wanted = obj_ids if obj_ids is not None else covered
     missing = sorted(set(wanted) - set(covered))
     if missing:
-        raise ValueError(f"data.obj_ids {missing} are not covered by the KPD checkpoint {cfg.kpd_ckpt} (it covers {covered})")
+        raise ValueError(f"data.obj_ids {missing} are not covered by the KPD checkpoint {kpd_ckpt or cfg.export_dir} "
+                         f"(it covers {covered})")
     ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
-    info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(cfg.kpd_ckpt), "pnp": pnp_cfg,
+    info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "device": str(pipeline.device)}
+    if backend != "torch":
+        info.update(backend=backend, export_dir=str(cfg.export_dir))
     return evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle", batch_size=int(cfg.batch_size),
                     max_frames=cfg.data.max_frames, n_overlays=int(cfg.overlays), run_info=info,
                     progress=bool(cfg.progress), extra_metrics=extra_metrics)

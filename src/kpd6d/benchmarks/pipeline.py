@@ -12,9 +12,15 @@ the full images). Configurations:
   CenterNet resnet18 (32 ch) at 320x240), 50 keypoints, EPnP on the top-10.
 * ``demo_lite0``: the same on EfficientNet-Lite0 (the ImageNet-pretrained backbone the demo uses now)
   in both stages.
+* ``tiny``: a few-layer KPD (64x64 crops) and an 8-channel CenterNet at 128x96, for smoke tests.
 
 Each batch size is timed ``--repeats`` times after ``--warmup`` runs; the median is reported.
 End-to-end = the sum of the stages (the same work ``PosePipeline.predict_batch`` does).
+
+``--backends torch,onnxruntime,openvino``: the same networks exported to ONNX (a temporary folder,
+:mod:`kpd6d.deploy.export`) and run by the torch-free runtime (:mod:`kpd6d.deploy.runtime`: numpy
+crops, decoding and detector post-processing), reported side by side with the speed-up over eager
+torch (``x torch``: fps / torch's fps for the same config and batch).
 """
 
 from __future__ import annotations
@@ -41,6 +47,10 @@ CONFIGS = {
     "demo_lite0": {"backbone": {"name": "efficientnet_lite0", "pretrained": None},
                    "head": {"name": "fpn", "fpn_channels": 64}, "input_size": 96,
                    "detector": {"name": "centernet", "backbone": "efficientnet_lite0", "input_size": [320, 240]}},
+    # smoke tests of the benchmark itself (not a model anyone deploys)
+    "tiny": {"backbone": {"name": "tiny", "width": 8}, "head": {"name": "deconv", "deconv_channels": 16},
+             "input_size": 64, "detector": {"name": "centernet", "backbone": "resnet10t", "neck_channels": 8,
+                                            "head_channels": 8, "input_size": [128, 96]}},
 }
 STAGES = ("detect", "crop", "kpd", "decode", "pnp")
 
@@ -97,13 +107,52 @@ def time_batch(det, kpd, pnp, images, boxes, image_index, obj_ids, K, top_l, dev
     return t
 
 
+def time_batch_runtime(rdet, rkpd, pnp, images, boxes, image_index, obj_ids, K, top_l) -> dict[str, float]:
+    """Seconds per stage for one batch on the torch-free runtime (numpy (B, H, W, 3) float images)."""
+    from kpd6d.geometry import affine_apply, invert_affine
+    from kpd6d.kpd.decoders_numpy import heatmap_to_crop
+
+    t0 = time.perf_counter()
+    rdet.predict(images)
+    t1 = time.perf_counter()
+    crops, A = rkpd.crops(images, boxes, image_index)
+    t2 = time.perf_counter()
+    heat = rkpd.heatmaps(crops, obj_ids)
+    t3 = time.perf_counter()
+    coords, conf = rkpd.decoder(heat)
+    kp = affine_apply(invert_affine(A), heatmap_to_crop(coords, rkpd.out_stride).astype(np.float64))
+    t4 = time.perf_counter()
+    idx = np.argsort(-conf, axis=-1, kind="stable")[:, :top_l]
+    k3 = np.stack([rkpd.keypoints_3d[int(o)] for o in obj_ids])
+    rows = np.arange(len(idx))[:, None]
+    pnp.solve_batch(k3[rows, idx], kp[rows, idx], K, None)
+    t5 = time.perf_counter()
+    return {"detect": t1 - t0, "crop": t2 - t1, "kpd": t3 - t2, "decode": t4 - t3, "pnp": t5 - t4}
+
+
+def _runtime(det, kpd, backend: str, threads: int | None):
+    """The benchmark's networks exported to a temporary folder and loaded on ``backend``."""
+    import tempfile
+
+    from kpd6d.deploy.export import export_detector, export_kpd
+    from kpd6d.deploy.runtime import RuntimeDetector, RuntimeKPD
+
+    with tempfile.TemporaryDirectory(prefix="kpd6d-bench-") as d:
+        knode, dnode = export_kpd(kpd, d), export_detector(det, d)
+        return RuntimeDetector(d, dnode, backend, threads), RuntimeKPD(d, knode, backend, threads)
+
+
 def run(config: str, batch_sizes, num_objects: int, num_keypoints: int, top_l: int, repeats: int, warmup: int,
-        device) -> list[dict]:
+        device, backends=("torch",), threads: int | None = None) -> list[dict]:
     from kpd6d.geometry import LINEMOD_K
     from kpd6d.registry import PNP_SOLVERS
 
     det, kpd = build(config, num_keypoints, num_objects, device)
     pnp = PNP_SOLVERS.build("epnp")
+    runtimes = {b: _runtime(det, kpd, b, threads) for b in backends if b != "torch"}
+    if runtimes:
+        det.to(device)
+        kpd.to(device)
     rows = []
     for B in batch_sizes:
         g = torch.Generator().manual_seed(0)
@@ -114,26 +163,46 @@ def run(config: str, batch_sizes, num_objects: int, num_keypoints: int, top_l: i
         image_index = torch.arange(B).repeat_interleave(num_objects).to(device)
         obj_ids = torch.arange(1, num_objects + 1).repeat(B).to(device)
         K = np.broadcast_to(LINEMOD_K, (B * num_objects, 3, 3))
-        runs = []
-        for i in range(warmup + repeats):
-            r = time_batch(det, kpd, pnp, images, boxes, image_index, obj_ids, K, top_l, device)
-            if i >= warmup:
-                runs.append(r)
-        med = {s: statistics.median(r[s] for r in runs) for s in STAGES}
-        total = sum(med.values())
-        rows.append({"config": config, "batch": B, "objects_per_image": num_objects, "device": str(device),
-                     **{f"{s}_ms_per_image": 1000 * med[s] / B for s in STAGES},
-                     "total_ms_per_image": 1000 * total / B, "fps": B / total})
+        torch_fps = None
+        for backend in backends:
+            runs = []
+            if backend != "torch":
+                rdet, rkpd = runtimes[backend]
+                np_images = np.ascontiguousarray(images.permute(0, 2, 3, 1).cpu().numpy())
+                np_args = (np_images, boxes.cpu().numpy(), image_index.cpu().numpy(), obj_ids.cpu().tolist())
+            for i in range(warmup + repeats):
+                if backend == "torch":
+                    r = time_batch(det, kpd, pnp, images, boxes, image_index, obj_ids, K, top_l, device)
+                else:
+                    r = time_batch_runtime(rdet, rkpd, pnp, *np_args, K, top_l)
+                if i >= warmup:
+                    runs.append(r)
+            med = {s: statistics.median(r[s] for r in runs) for s in STAGES}
+            total = sum(med.values())
+            row = {"config": config, "batch": B, "objects_per_image": num_objects,
+                   "device": str(device) if backend == "torch" else "cpu",
+                   **{f"{s}_ms_per_image": 1000 * med[s] / B for s in STAGES},
+                   "total_ms_per_image": 1000 * total / B, "fps": B / total}
+            if backend == "torch":
+                torch_fps = row["fps"]
+            if tuple(backends) != ("torch",):
+                row["backend"] = backend
+                row["vs_torch"] = None if torch_fps is None else row["fps"] / torch_fps
+            rows.append(row)
     return rows
 
 
 def format_table(rows: list[dict]) -> str:
-    head = "| config | device | batch | objects/img | " + " | ".join(f"{s} ms" for s in STAGES) + " | total ms | fps |"
-    lines = [head, "|" + "---|" * (len(STAGES) + 6)]
+    multi = any("backend" in r for r in rows)  # --backends: a backend column and the ratio to eager torch
+    head = ("| config | " + ("backend | " if multi else "") + "device | batch | objects/img | "
+            + " | ".join(f"{s} ms" for s in STAGES) + " | total ms | fps |" + (" x torch |" if multi else ""))
+    lines = [head, "|" + "---|" * (len(STAGES) + 6 + 2 * multi)]
     for r in rows:
-        lines.append(f"| {r['config']} | {r['device']} | {r['batch']} | {r['objects_per_image']} | "
+        ratio = "" if not multi else (" - |" if r.get("vs_torch") is None else f" {r['vs_torch']:.2f} |")
+        lines.append(f"| {r['config']} | " + (f"{r['backend']} | " if multi else "")
+                     + f"{r['device']} | {r['batch']} | {r['objects_per_image']} | "
                      + " | ".join(f"{r[f'{s}_ms_per_image']:.1f}" for s in STAGES)
-                     + f" | {r['total_ms_per_image']:.1f} | {r['fps']:.2f} |")
+                     + f" | {r['total_ms_per_image']:.1f} | {r['fps']:.2f} |" + ratio)
     return "\n".join(lines)
 
 
@@ -149,10 +218,19 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--device", default="auto", help="auto (cuda when available), cpu or cuda")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
     p.add_argument("--json", default=None, help="also write the rows as JSON here")
+    p.add_argument("--backends", default="torch",
+                   help="comma-separated, of torch, onnxruntime, openvino (exported networks, torch-free runtime; "
+                        "needs kpd6d[deploy]); the table gains the ratio to eager torch")
     args = p.parse_args(argv)
     unknown = [c for c in args.configs.split(",") if c not in CONFIGS]
     if unknown:
         p.error(f"unknown config(s) {unknown}; known: {', '.join(CONFIGS)}")
+    from kpd6d.deploy import BACKENDS
+
+    backends = [b for b in args.backends.split(",") if b]
+    bad = [b for b in backends if b not in BACKENDS]
+    if bad or not backends:
+        p.error(f"unknown backend(s) {bad}; known: {', '.join(BACKENDS)}")
     if args.threads:
         torch.set_num_threads(args.threads)
     device = torch.device("cuda" if args.device == "auto" and torch.cuda.is_available() else
@@ -160,7 +238,8 @@ def main(argv: list[str] | None = None) -> int:
     sizes = [int(b) for b in args.batch_sizes.split(",")]
     rows = []
     for c in args.configs.split(","):
-        rows += run(c, sizes, args.objects, args.keypoints, args.top_l, args.repeats, args.warmup, device)
+        rows += run(c, sizes, args.objects, args.keypoints, args.top_l, args.repeats, args.warmup, device,
+                    backends=backends, threads=args.threads)
     dev_name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{platform.processor() or 'cpu'}, {torch.get_num_threads()} threads"
     print(f"device: {dev_name}; {args.objects} objects/image, {args.keypoints} keypoints, top-{args.top_l}, EPnP; "
           f"median of {args.repeats} runs; untrained weights")

@@ -1,0 +1,329 @@
+"""The torch-free pose runtime: an export folder (:mod:`kpd6d.deploy.export`) on ONNX Runtime or
+OpenVINO, CPU. Imports numpy, OpenCV (through :mod:`kpd6d.pnp`) and the backend's package only —
+never torch, kornia or :mod:`kpd6d.kpd.module` (tests/test_deploy.py checks ``sys.modules`` in a
+fresh process; tests/test_layering.py checks the imports).
+
+:class:`RuntimePipeline` has the interface of :class:`kpd6d.pipeline.PosePipeline` (``__call__``,
+``predict_batch``, ``last_timings``, ``kpd.keypoints_3d``, ``refine_boxes``) and returns the same
+pose dicts with numpy arrays: detector (resize → ``detector.onnx`` → numpy peaks / top-k /
+post-processing, or the oracle's GT boxes) → crops (numpy bilinear, the codec's affine) →
+``kpd.onnx`` → the codec's decoder in numpy (:mod:`kpd6d.kpd.decoders_numpy`) → top-l → PnP
+(``PNP_SOLVERS``, numpy / OpenCV).
+
+Backends: ``onnxruntime`` (``CPUExecutionProvider``) and ``openvino`` (reads the ONNX files; CPU,
+``INFERENCE_PRECISION_HINT=f32`` so that results match torch's float32 — OpenVINO picks bf16 on CPUs
+that have it otherwise). ``threads``: intra-op threads (None: the backend's default).
+"""
+
+from __future__ import annotations
+
+import os
+import time
+from collections.abc import Mapping, Sequence
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from kpd6d.deploy import SIDECAR
+from kpd6d.deploy.ops import (
+    decode_centernet,
+    oracle_detections,
+    postprocess_detections,
+    resize_bilinear_antialias,
+    warp_affine_bilinear,
+)
+from kpd6d.geometry import affine_apply, bbox_from_points, box_to_crop_affine, invert_affine, project_points
+from kpd6d.kpd.decoders_numpy import build_numpy_decoder, heatmap_to_crop
+from kpd6d.pnp.top_l import top_l_mask
+
+__all__ = ["RUNTIME_BACKENDS", "BackendUnavailableError", "RuntimeDetector", "RuntimeKPD", "RuntimePipeline",
+           "Session", "read_sidecar"]
+
+RUNTIME_BACKENDS = ("onnxruntime", "openvino")
+
+
+class BackendUnavailableError(ImportError):
+    """The backend's package is not installed; the message says what to install."""
+
+
+def read_sidecar(export_dir: str | os.PathLike) -> dict[str, Any]:
+    """The ``kpd6d_export.json`` of an export folder (a clear error when it is not one)."""
+    from kpd6d.io import read_json
+
+    d = Path(export_dir)
+    p = d / SIDECAR
+    if not p.is_file():
+        raise FileNotFoundError(f"export_dir={str(d)!r} holds no {SIDECAR} (export one with kpd6d-export "
+                                "kpd_ckpt=... detector_ckpt=... out_dir=...)")
+    side = read_json(p, what="kpd6d export sidecar", error=ValueError)
+    if not isinstance(side, dict) or side.get("format") != "kpd6d_export" or "kpd" not in side:
+        raise ValueError(f"{str(p)!r} is not a kpd6d export sidecar (no format: kpd6d_export / kpd entry)")
+    return side
+
+
+class Session:
+    """One ONNX graph on a backend: ``session(x) -> list of outputs`` (numpy float32)."""
+
+    def __init__(self, path: str | os.PathLike, backend: str = "onnxruntime", threads: int | None = None,
+                 precision: str = "f32") -> None:
+        if backend not in RUNTIME_BACKENDS:
+            raise ValueError(f"backend {backend!r} unknown; the runtime has {', '.join(RUNTIME_BACKENDS)} "
+                             "(backend=torch runs the checkpoints: PosePipeline.from_checkpoints)")
+        path = Path(path)
+        if not path.is_file():
+            raise FileNotFoundError(f"ONNX model {str(path)!r} does not exist")
+        self.backend, self.path = backend, path
+        if backend == "onnxruntime":
+            try:
+                import onnxruntime as ort
+            except ImportError as exc:
+                raise BackendUnavailableError("backend=onnxruntime needs the onnxruntime package: "
+                                              "pip install kpd6d[deploy]") from exc
+            so = ort.SessionOptions()
+            if threads:
+                so.intra_op_num_threads = int(threads)
+                so.inter_op_num_threads = 1
+            self._sess = ort.InferenceSession(str(path), so, providers=["CPUExecutionProvider"])
+            self._input = self._sess.get_inputs()[0].name
+            self._run = lambda x: self._sess.run(None, {self._input: x})
+        else:
+            try:
+                import openvino as ov
+            except ImportError as exc:
+                raise BackendUnavailableError("backend=openvino needs the openvino package: "
+                                              "pip install kpd6d[deploy]") from exc
+            core = ov.Core()
+            config = {"INFERENCE_PRECISION_HINT": precision}
+            if threads:
+                config["INFERENCE_NUM_THREADS"] = int(threads)
+            self._compiled = core.compile_model(core.read_model(str(path)), "CPU", config)
+            self._request = self._compiled.create_infer_request()
+            outputs = list(self._compiled.outputs)
+
+            def run(x):
+                res = self._request.infer({0: x})
+                return [np.asarray(res[o]) for o in outputs]
+
+            self._run = run
+
+    def __call__(self, x: np.ndarray) -> list[np.ndarray]:
+        return [np.asarray(o, dtype=np.float32) for o in self._run(np.ascontiguousarray(x, dtype=np.float32))]
+
+
+class RuntimeKPD:
+    """The exported KPD: ``predict_keypoints(images, boxes, image_index, obj_ids)`` as
+    :meth:`kpd6d.kpd.module.KPDModule.predict_keypoints`, on (B, H, W, 3) float32 [0, 1] images."""
+
+    def __init__(self, export_dir: str | os.PathLike, node: Mapping[str, Any], backend: str = "onnxruntime",
+                 threads: int | None = None) -> None:
+        self.node = dict(node)
+        self.session = Session(Path(export_dir) / node["file"], backend, threads)
+        self.obj_ids = [int(o) for o in node["obj_ids"]]
+        self._index = {o: i for i, o in enumerate(self.obj_ids)}
+        self.keypoints_3d = {o: np.asarray(k, dtype=np.float64) for o, k in zip(self.obj_ids, node["keypoints_3d"])}
+        mp = node.get("model_points")
+        self._surface = {o: np.asarray(p, dtype=np.float64) for o, p in zip(self.obj_ids, mp)} if mp else None
+        self.hparams = {"model_points": mp, "obj_ids": self.obj_ids}  # what kpd6d.predict.corners_from_kpd reads
+        codec = node["codec"]
+        self.input_size, self.out_stride = int(codec["input_size"]), int(codec["out_stride"])
+        self.crop_scale = float(codec["crop_scale"])
+        self.decoder = build_numpy_decoder(codec.get("decoder"))
+        self.num_keypoints, self.num_groups = int(node["num_keypoints"]), int(node["num_groups"])
+
+    def surface_points(self, obj_id: int) -> np.ndarray:
+        """(P, 3) model points (mm) of ``obj_id`` (else its keypoints), as ``KPDModule.surface_points``."""
+        o = int(obj_id)
+        return self._surface[o] if self._surface is not None else self.keypoints_3d[o]
+
+    def crops(self, images: np.ndarray, boxes: np.ndarray, image_index: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The codec's crops (N, 3, S, S) float32 and image → crop affines (N, 2, 3) float64."""
+        A = box_to_crop_affine(np.asarray(boxes, dtype=np.float64).reshape(-1, 4), self.input_size,
+                               scale=self.crop_scale)
+        S = self.input_size
+        crops = np.zeros((len(A), 3, S, S), dtype=np.float32)
+        for b in np.unique(image_index):
+            sel = np.flatnonzero(image_index == b)
+            crops[sel] = warp_affine_bilinear(images[int(b)], A[sel], S)
+        return crops, A
+
+    def heatmaps(self, crops: np.ndarray, obj_ids: Sequence[int]) -> np.ndarray:
+        """Crops (N, 3, S, S) → each crop's object group of heatmaps (N, k, S/s, S/s)."""
+        unknown = sorted({int(o) for o in obj_ids} - set(self._index))
+        if unknown:
+            raise KeyError(f"exported KPD does not cover object(s) {unknown}; it covers {self.obj_ids}")
+        hm = self.session(crops)[0]
+        if self.num_groups == 1:
+            return hm
+        N, _, h, w = hm.shape
+        groups = np.asarray([self._index[int(o)] for o in obj_ids])
+        return hm.reshape(N, self.num_groups, self.num_keypoints, h, w)[np.arange(N), groups]
+
+    def predict_keypoints(self, images: np.ndarray, boxes, image_index, obj_ids) -> tuple[np.ndarray, np.ndarray]:
+        """Keypoints (N, k, 2) image px and confidences (N, k) (float32, as the torch module's)."""
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+        image_index = np.asarray(image_index, dtype=np.int64).reshape(-1)
+        k = self.num_keypoints
+        if len(boxes) == 0:
+            return np.zeros((0, k, 2), np.float32), np.zeros((0, k), np.float32)
+        crops, A = self.crops(images, boxes, image_index)
+        coords, conf = self.decoder(self.heatmaps(crops, list(obj_ids)))
+        kp_img = affine_apply(invert_affine(A), heatmap_to_crop(coords, self.out_stride).astype(np.float64))
+        return kp_img.astype(np.float32), conf.astype(np.float32)
+
+
+class RuntimeDetector:
+    """The exported CenterNet (or the oracle): ``predict(images (B, H, W, 3) float32 [0, 1], targets)``
+    → one :class:`~kpd6d.deploy.ops.NumpyDetections` per image."""
+
+    def __init__(self, export_dir: str | os.PathLike | None, node: Mapping[str, Any], backend: str = "onnxruntime",
+                 threads: int | None = None, obj_ids: Sequence[int] | None = None, **overrides: Any) -> None:
+        self.node = {**dict(node), **overrides}
+        self.name = self.node["name"]
+        self.obj_ids = None if obj_ids is None else [int(o) for o in obj_ids]
+        if self.name == "oracle":
+            self.session = None
+            return
+        if self.name != "centernet":
+            raise ValueError(f"exported detector {self.name!r} is not supported by the runtime (centernet, oracle)")
+        have = [int(o) for o in self.node["obj_ids"]]
+        if self.obj_ids is not None and sorted(set(self.obj_ids) - set(have)):
+            raise ValueError(f"exported detector covers obj_ids {have}; it cannot detect "
+                             f"{sorted(set(self.obj_ids) - set(have))}")
+        self.session = Session(Path(export_dir) / self.node["file"], backend, threads)
+
+    def predict(self, images: np.ndarray, targets: Sequence[dict] | None = None):
+        n = self.node
+        if self.session is None:
+            return oracle_detections(targets, self.obj_ids, int(n.get("max_detections", 100)))
+        H, W = images.shape[1:3]
+        w, h = n["input_size"]
+        x = resize_bilinear_antialias(np.ascontiguousarray(images.transpose(0, 3, 1, 2)), (w, h))
+        heat, wh, off = self.session(x)
+        boxes, labels, scores = decode_centernet(heat, wh, off, int(n["stride"]), int(n["top_k"]))
+        boxes = boxes * np.asarray([W / w, H / h, W / w, H / h], dtype=np.float32)
+        return postprocess_detections(boxes, labels, scores, n["obj_ids"], float(n["score_threshold"]),
+                                      int(n["max_detections"]), bool(n["one_per_object"]))
+
+
+class RuntimePipeline:
+    """Detector + KPD + PnP from an export folder (module docstring). ``detector``: ``"export"`` (the
+    exported detector; the oracle if none was exported) or ``"oracle"`` (GT boxes from ``targets``)."""
+
+    def __init__(self, export_dir: str | os.PathLike, backend: str = "onnxruntime", pnp: Any = "epnp_ransac",
+                 top_l: int | None = 20, refine_boxes: int = 0, detector: str = "export",
+                 obj_ids: Sequence[int] | None = None, threads: int | None = None, **detector_overrides: Any) -> None:
+        from kpd6d.registry import PNP_SOLVERS, build_from_cfg
+
+        if backend not in RUNTIME_BACKENDS:
+            raise ValueError(f"backend {backend!r} unknown; known: {', '.join(RUNTIME_BACKENDS)}")
+        if top_l is not None and int(top_l) < 4:
+            raise ValueError(f"top_l must be >= 4 (PnP needs at least 4 points) or None, got {top_l}")
+        if int(refine_boxes) < 0:
+            raise ValueError(f"refine_boxes must be >= 0, got {refine_boxes}")
+        self.export_dir, self.backend = Path(export_dir), backend
+        self.sidecar = read_sidecar(export_dir)
+        self.kpd = RuntimeKPD(export_dir, self.sidecar["kpd"], backend, threads)
+        dnode = {"name": "oracle"} if detector == "oracle" else self.sidecar.get("detector", {"name": "oracle"})
+        self.detector = RuntimeDetector(export_dir, dnode, backend, threads, obj_ids=obj_ids, **detector_overrides)
+        if isinstance(pnp, (str, Mapping)):
+            pnp = PNP_SOLVERS.build(pnp) if isinstance(pnp, str) else build_from_cfg(PNP_SOLVERS, dict(pnp))
+        self.pnp = pnp
+        self.top_l = None if top_l is None else int(top_l)
+        self.refine_boxes = int(refine_boxes)
+        self.device = "cpu"
+        self.last_timings: dict[str, float] = {}
+
+    def __call__(self, image: np.ndarray, K, targets: dict | None = None) -> list[dict]:
+        return self.predict_batch([image], K, None if targets is None else [targets])[0]
+
+    def predict_batch(self, images, K, targets: list[dict] | None = None) -> list[list[dict]]:
+        """Poses for a batch of uint8 (H, W, 3) RGB images (as :meth:`PosePipeline.predict_batch`)."""
+        t0 = time.perf_counter()
+        x = _images_to_float(images)
+        B = x.shape[0]
+        Ks = _check_K(K, B)
+        dets = self.detector.predict(x, targets=targets)
+        if len(dets) != B:
+            raise ValueError(f"detector returned {len(dets)} results for {B} images")
+        t1 = time.perf_counter()
+        known = set(self.kpd.keypoints_3d)
+        boxes, img_idx, obj_ids, scores = [], [], [], []
+        for b, d in enumerate(dets):
+            for box, oid, s in zip(d.boxes.tolist(), d.obj_ids.tolist(), d.scores.tolist()):
+                if int(oid) in known:
+                    boxes.append(box)
+                    img_idx.append(b)
+                    obj_ids.append(int(oid))
+                    scores.append(float(s))
+        out: list[list[dict]] = [[] for _ in range(B)]
+        if not boxes:
+            self.last_timings = {"detect": t1 - t0, "kpd": 0.0, "pnp": 0.0, "total": time.perf_counter() - t0}
+            return out
+        boxes_np = np.asarray(boxes, dtype=np.float32)
+        idx = np.asarray(img_idx)
+        pts3d = np.stack([self.kpd.keypoints_3d[o].reshape(-1, 3) for o in obj_ids])
+        t_kpd = t_pnp = 0.0
+        for it in range(self.refine_boxes + 1):
+            ta = time.perf_counter()
+            kp2d, conf = self.kpd.predict_keypoints(x, boxes_np, idx, obj_ids)
+            tb = time.perf_counter()
+            kp2d_np, conf_np = kp2d.astype(np.float64), conf.astype(np.float64)
+            used = top_l_mask(conf_np, self.top_l)
+            weights = np.where(used, np.maximum(conf_np, 1e-6), 0.0)
+            est = self.pnp.solve_batch(np.ascontiguousarray(pts3d), kp2d_np, np.ascontiguousarray(Ks[idx]), weights)
+            t_kpd += tb - ta
+            t_pnp += time.perf_counter() - tb
+            if it < self.refine_boxes:
+                boxes_np = self._boxes_from_poses(est, obj_ids, img_idx, Ks, boxes_np, x.shape[1:3])
+        t3 = time.perf_counter()
+        R, t, ok = np.asarray(est.R), np.asarray(est.t), np.asarray(est.ok)
+        for n, b in enumerate(img_idx):
+            out[b].append({
+                "obj_id": obj_ids[n], "R": R[n], "t": t[n], "score": scores[n],
+                "keypoints_2d": kp2d_np[n], "confidences": conf_np[n], "used": used[n],
+                "box": np.asarray(boxes[n]), "ok": bool(ok[n]), "reason": est.reasons[n],
+            })
+        self.last_timings = {"detect": t1 - t0, "kpd": t_kpd, "pnp": t_pnp, "total": t3 - t0}
+        return out
+
+    def _boxes_from_poses(self, est, obj_ids, img_idx, Ks, boxes, hw) -> np.ndarray:
+        """``PosePipeline._boxes_from_poses`` on numpy boxes: each solved instance's box becomes the
+        box of its projected surface points, clipped to the image; failed / degenerate ones keep theirs."""
+        H, W = int(hw[0]), int(hw[1])
+        new = boxes.astype(np.float64)
+        for n, (oid, b) in enumerate(zip(obj_ids, img_idx)):
+            if not bool(est.ok[n]):
+                continue
+            uv, z = project_points(self.kpd.surface_points(oid), Ks[b], np.asarray(est.R[n]), np.asarray(est.t[n]),
+                                   return_depth=True)
+            if not (z > 0).all() or not np.isfinite(uv).all():
+                continue
+            lo, hi = np.clip(uv.min(0), 0, [W, H]), np.clip(uv.max(0), 0, [W, H])
+            if (hi - lo).min() < 2:
+                continue
+            new[n] = bbox_from_points(np.stack([lo, hi]))
+        return new.astype(np.float32)
+
+
+def _images_to_float(images) -> np.ndarray:
+    """uint8 RGB images (H, W, 3) (a list or (B, H, W, 3)) → float32 (B, H, W, 3) in [0, 1]."""
+    arr = [np.asarray(im) for im in (images if isinstance(images, (list, tuple)) else list(np.asarray(images)))]
+    for i, im in enumerate(arr):
+        if im.ndim != 3 or im.shape[2] != 3:
+            raise ValueError(f"image {i} must be (H, W, 3) RGB, got shape {im.shape}")
+        if im.dtype != np.uint8:
+            raise ValueError(f"image {i} must be uint8 RGB (0..255), got dtype {im.dtype}")
+        if im.shape != arr[0].shape:
+            raise ValueError(f"images of one batch must have one size: image 0 is {arr[0].shape}, "
+                             f"image {i} is {im.shape}")
+    return np.stack(arr).astype(np.float32) / np.float32(255.0)
+
+
+def _check_K(K, n: int) -> np.ndarray:
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape == (3, 3):
+        K = np.broadcast_to(K, (n, 3, 3))
+    if K.shape != (n, 3, 3) or not np.isfinite(K).all():
+        raise ValueError(f"K must be (3, 3) or ({n}, 3, 3) finite intrinsics, got shape {K.shape}")
+    return np.ascontiguousarray(K)

@@ -6,13 +6,13 @@ Layers, lowest first (a "unit" is a top-level module ``kpd6d/X.py`` or a subpack
 
     L0  io, geometry, registry, config, paths    file I/O, conventions, the registry tables, settings
     L1  objects, symmetry, render, pnp, visualize, pretrained, schedules, ema, finetune, box_errors
-    L1b training                                 the trainer/checkpoint/optimizer setup of both stages
-    L2  keypoints
-    L3  data, synth                              BOP datasets; the generator that writes them
-    L4  evaluation, detection, kpd               metrics; the two trained stages
-    L5  deploy                                   ONNX export of the stages; the torch-free runtime
-    L6  pipeline, predict, benchmarks, workflow  stages put together
-    L7  cli                                      Hydra entry points, imported by no library code
+    L2  training                                 the trainer/checkpoint/optimizer setup of both stages
+    L3  keypoints
+    L4  data, synth                              BOP datasets; the generator that writes them
+    L5  evaluation, detection, kpd               metrics; the two trained stages
+    L6  deploy                                   ONNX export of the stages; the torch-free runtime
+    L7  pipeline, predict, benchmarks, workflow  stages put together
+    L8  cli                                      Hydra entry points, imported by no library code
 
 Rules:
 
@@ -338,7 +338,7 @@ def test_checker_catches_upward_same_layer_cli_root_and_cycles(tmp_path):
     text = "\n".join(bad)
     assert "kpd6d.mystery: not in the layer table" in text
     assert "kpd6d/__init__.py:1: kpd6d imports kpd6d.data -- kpd6d/__init__.py may re-export only lazily" in text
-    assert "kpd6d/geometry.py:2: kpd6d.geometry imports kpd6d.kpd -- L0 geometry may not import the higher layer L4 kpd" in text
+    assert "kpd6d/geometry.py:2: kpd6d.geometry imports kpd6d.kpd -- L0 geometry may not import the higher layer L5 kpd" in text
     assert "kpd6d/objects/model.py:1: kpd6d.objects.model imports kpd6d.render -- objects and render are both L1" in text
     assert "kpd6d/render.py:2: kpd6d.render imports kpd6d.objects.model" in text
     assert "kpd6d/data/__init__.py:1: kpd6d.data imports kpd6d -- from the package root only" in text

@@ -61,20 +61,17 @@ designate = designate_keypoints  # the old name (transition)
 
 
 def generate(cfg, root: Path) -> None:
-    """Train / val / test splits (different seeds) written resumably into ``root``."""
-    from kpd6d.synth import generate_dataset
+    """Train / val / test splits (seeds ``seed * 1000 + 0, 1, 2``) written resumably into ``root``."""
+    from kpd6d.synth.prepare import generate_splits
 
     d = cfg.data
     options = dict(to_plain(d.options) or {})
     # keypoints live in the run (keypoints.json) so that runs with other designators share one dataset
     options.setdefault("designator", None)
-    for i, (split, n) in enumerate((("train", d.num_train), ("val", d.num_val), (cfg.evaluate.split, d.num_test))):
-        if not n:
-            continue
-        _log(f"generating {n} {split} images into {root}")
-        generate_dataset(root, models_dir=cfg.objects.models_dir, obj_ids=to_plain(cfg.objects.obj_ids), num_images=int(n),
-                         split=split, seed=int(cfg.seed) * 1000 + i, workers=int(d.workers), progress=bool(cfg.progress),
-                         **options)
+    splits = [("train", d.num_train), ("val", d.num_val), (cfg.evaluate.split, d.num_test)]
+    generate_splits(root, [(s, n, int(cfg.seed) * 1000 + i) for i, (s, n) in enumerate(splits)],
+                    models_dir=cfg.objects.models_dir, obj_ids=cfg.objects.obj_ids, workers=int(d.workers),
+                    progress=bool(cfg.progress), options=options, log=_log)
 
 
 def _stage_cfg(cfg, stage_key: str, run_dir: Path, root: Path, **extra):

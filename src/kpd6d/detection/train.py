@@ -20,25 +20,7 @@ from typing import Any
 from kpd6d.config import check_stage_config, run_dir_of
 from kpd6d.io import to_plain
 
-__all__ = ["prepare_data", "train_detector"]
-
-def prepare_data(cfg: Any, run_dir: Path) -> Path:
-    """``data.root``, or a procedural dataset generated (resumably) into ``<run_dir>/data``."""
-    if cfg.data.root:
-        root = Path(cfg.data.root)
-        if not root.is_dir():
-            raise FileNotFoundError(f"data.root {str(root)!r} does not exist")
-        return root
-    from kpd6d.synth import generate_dataset
-
-    g = cfg.stage.generate
-    out = run_dir / "data"
-    seed = int(g.seed)
-    for split, n, s in ((cfg.data.train_split, g.num_train, seed), (cfg.data.val_split, g.num_val, seed + 1000)):
-        generate_dataset(out, obj_ids=to_plain(g.obj_ids), num_images=int(n), split=split, seed=s,
-                         workers=int(g.workers), **(to_plain(g.options) or {}))
-    return out
-
+__all__ = ["train_detector"]
 
 def train_detector(cfg: Any) -> Path:
     """Train the configured detector; returns the path of the exported ``detector.pt``."""
@@ -69,7 +51,9 @@ def train_detector(cfg: Any) -> Path:
 
     run_dir = run_dir_of(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
-    root = prepare_data(cfg, run_dir)
+    from kpd6d.synth.prepare import prepare_data
+
+    root = prepare_data(cfg.data.root, run_dir, to_plain(st.generate), [cfg.data.train_split, cfg.data.val_split])
     common = dict(box=st.box, min_visib_fract=float(st.min_visib_fract), input_size=det_cfg.get("input_size"))
     stage_ids = to_plain(st.obj_ids)
     train_ds = DetectionDataset(root, cfg.data.train_split, obj_ids=stage_ids, **common)

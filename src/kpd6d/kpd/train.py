@@ -18,27 +18,7 @@ from pathlib import Path
 from kpd6d.config import check_stage_config, run_dir_of
 from kpd6d.io import to_plain
 
-__all__ = ["build_datasets", "generate_if_needed", "scheduler_config", "train_kpd"]
-
-
-def generate_if_needed(cfg, run_dir: Path) -> Path:
-    """``data.root`` or, when null, a procedural dataset generated (resumably) into ``<run_dir>/data``."""
-    if cfg.data.root is not None:
-        root = Path(cfg.data.root)
-        if not root.is_dir():
-            raise FileNotFoundError(f"data.root {str(root)!r} does not exist (set data.root=null to generate one)")
-        return root
-    from kpd6d.synth import generate_dataset
-
-    g = cfg.stage.kpd.generate
-    root = run_dir / "data"
-    ids = list(g.obj_ids) if g.obj_ids is not None else None
-    generate_dataset(root, obj_ids=ids, num_images=int(g.num_train), split=cfg.data.train_split,
-                     seed=int(g.seed), workers=int(g.workers))
-    if cfg.data.val_split:
-        generate_dataset(root, obj_ids=ids, num_images=int(g.num_val), split=cfg.data.val_split,
-                         seed=int(g.seed) + 1000, workers=int(g.workers))
-    return root
+__all__ = ["build_datasets", "scheduler_config", "train_kpd"]
 
 
 def build_datasets(cfg, root: Path):
@@ -91,7 +71,9 @@ def train_kpd(cfg) -> Path:
     run_dir = run_dir_of(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     seed_and_threads(cfg.seed, k.get("num_threads"))
-    root = generate_if_needed(cfg, run_dir)
+    from kpd6d.synth.prepare import prepare_data
+
+    root = prepare_data(cfg.data.root, run_dir, to_plain(k.generate), [cfg.data.train_split, cfg.data.val_split])
     train_ds, val_ds = build_datasets(cfg, root)
 
     module = KPDModule.from_models(

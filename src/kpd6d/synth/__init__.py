@@ -5,10 +5,12 @@
 :mod:`~kpd6d.synth.distractors` makes occluders, :mod:`~kpd6d.synth.scene` composes one image
 (:mod:`~kpd6d.synth.tabletop`: the table, camera and resting poses of ``layout: tabletop``),
 :mod:`~kpd6d.synth.photometric` applies blur / noise / colour shifts. BOP files are written through
-:mod:`kpd6d.data`.
+:mod:`kpd6d.data`; :mod:`~kpd6d.synth.prepare` is the one data-preparation path of the workflow and the
+training stages.
 """
 
 from kpd6d.synth.config import SynthConfig, default_K
 from kpd6d.synth.generate import generate_dataset, image_rng
+from kpd6d.synth.prepare import generate_splits, prepare_data
 
-__all__ = ["SynthConfig", "default_K", "generate_dataset", "image_rng"]
+__all__ = ["SynthConfig", "default_K", "generate_dataset", "generate_splits", "image_rng", "prepare_data"]

@@ -93,3 +93,92 @@ def test_pnp_gate_reason_and_config():
     assert loose(X, uv, LINEMOD_K).ok
     with pytest.raises(ValueError, match=r"sqpnp: max_relative_residual must be > 0 or None, got -1"):
         PNP_SOLVERS.build("sqpnp", max_relative_residual=-1)
+
+
+# ---------------------------------------------------------------------------------------------
+# meshes: units and degenerate geometry
+# ---------------------------------------------------------------------------------------------
+def _box(scale=1.0):
+    import trimesh
+
+    m = trimesh.creation.box((100.0, 60.0, 40.0))
+    m.apply_scale(scale)
+    return m
+
+
+def _bop_models(folder, mesh, diameter):
+    import json
+
+    folder.mkdir(parents=True, exist_ok=True)
+    mesh.export(folder / "obj_000001.ply")
+    (folder / "models_info.json").write_text(json.dumps({"1": {"diameter": diameter}}))
+    return folder
+
+
+def test_mesh_in_metres_is_an_error_with_the_fix(tmp_path):
+    from kpd6d.objects import ModelError, ObjectModel, load_bop_models
+
+    p = tmp_path / "obj_000001.ply"
+    _box(0.001).export(p)
+    data = p.read_bytes()
+    with pytest.raises(ModelError, match=r"obj_000001\.ply: the object measures 0\.1\d+ .*looks like metres; "
+                                         r"pass units='m' \(or scale the file\)"):
+        ObjectModel.load(p)
+    assert 120 < ObjectModel.load(p, units="m").diameter < 130
+    # models_info in metres too: its diameter is caught before any mesh is read
+    models = _bop_models(tmp_path / "models", _box(0.001), 0.123)
+    before = _snapshot(models)
+    with pytest.raises(ModelError, match=r"models_info\.json: object 1 diameter 0\.123.*looks like metres; pass units='m'"):
+        load_bop_models(models)
+    assert load_bop_models(models, units="m")[0].diameter == pytest.approx(0.123)  # models_info diameter kept as given
+    assert p.read_bytes() == data and _snapshot(models) == before
+
+
+def test_tiny_object_in_millimetres_passes_when_stated(tmp_path):
+    from kpd6d.objects import ModelError, ObjectModel
+
+    p = tmp_path / "screw.ply"
+    _box(0.01).export(p)  # 1 x 0.6 x 0.4 mm
+    with pytest.raises(ModelError, match="looks like metres"):
+        ObjectModel.load(p)
+    assert ObjectModel.load(p, units="mm").diameter == pytest.approx(np.linalg.norm([1.0, 0.6, 0.4]))
+    q = tmp_path / "small.ply"
+    _box(0.05).export(q)  # 5 x 3 x 2 mm: above the limit, loads with the default
+    assert ObjectModel.load(q).diameter == pytest.approx(np.linalg.norm([5.0, 3.0, 2.0]))
+
+
+def test_procedural_objects_pass_the_units_check(tmp_path):
+    from kpd6d.objects import ObjectModel, procedural_objects
+
+    for m in procedural_objects(obj_ids=[1, 2]):
+        p = tmp_path / f"obj_{m.obj_id:06d}.ply"
+        m.mesh.export(p)
+        assert ObjectModel.load(p).diameter == pytest.approx(m.diameter, rel=1e-6)
+
+
+def test_degenerate_meshes_name_the_file(tmp_path):
+    import trimesh
+
+    from kpd6d.objects import ModelError, ObjectModel
+
+    box = _box()
+    flat = trimesh.Trimesh(box.vertices[box.faces[:, [0, 0, 1]].reshape(-1)].reshape(-1, 3),
+                           np.arange(3 * len(box.faces)).reshape(-1, 3), process=False)  # every face has 2 equal corners
+    collapsed = trimesh.Trimesh(np.tile([[10.0, 20.0, 30.0]], (8, 1)), box.faces, process=False)
+    for name, mesh in (("flat.ply", flat), ("collapsed.ply", collapsed)):
+        mesh.export(tmp_path / name)
+        data = (tmp_path / name).read_bytes()
+        with pytest.raises(ModelError, match=rf"{name}: degenerate mesh: 12 of 12 faces have zero area"):
+            ObjectModel.load(tmp_path / name, units="mm")
+        assert (tmp_path / name).read_bytes() == data
+    (tmp_path / "points.ply").write_text("ply\nformat ascii 1.0\nelement vertex 3\nproperty float x\nproperty float y\n"
+                                         "property float z\nend_header\n0 0 0\n100 0 0\n0 100 0\n")
+    with pytest.raises(ModelError, match=r"points\.ply: .*(0 faces|no triangle mesh|not a triangle mesh)"):
+        ObjectModel.load(tmp_path / "points.ply")
+    (tmp_path / "nan.obj").write_text("v 0 0 0\nv 100 0 0\nv nan 100 0\nv 0 0 100\nf 1 2 3\nf 1 2 4\nf 1 3 4\nf 2 3 4\n")
+    with pytest.raises(ModelError, match=r"nan\.obj: .*non-finite"):
+        ObjectModel.load(tmp_path / "nan.obj")
+    # a few zero-area faces among many good ones are fine (meshes often have some)
+    ok = trimesh.Trimesh(np.r_[box.vertices, box.vertices[:1]], np.r_[box.faces, [[0, 8, 1]]], process=False)
+    ok.export(tmp_path / "mostly_fine.ply")
+    assert len(ObjectModel.load(tmp_path / "mostly_fine.ply").faces) == 13

@@ -134,17 +134,23 @@ def bop_symmetry_transforms(info: dict, max_sym_disc_step: float = MAX_SYM_DISC_
 
 def load_eval_models(root: str | os.PathLike) -> dict[int, dict]:
     """``{obj_id: {"pts": (N, 3), "diameter": d, "syms": (S, 4, 4)}}`` from models_eval/ (else models/)."""
-    from kpd6d.objects import ObjectModel, load_models_info
+    from kpd6d.objects import ModelError, ObjectModel, load_models_info
 
     root = Path(root)
     mdir = root / "models_eval" if (root / "models_eval" / "models_info.json").is_file() else root / "models"
-    info = load_models_info(mdir / "models_info.json")
+    try:
+        info = load_models_info(mdir / "models_info.json")
+    except ModelError as exc:
+        raise BopScoringError(str(exc)) from exc
     out = {}
     for oid, entry in info.items():
         ply = mdir / f"obj_{oid:06d}.ply"
         if not ply.is_file():
             continue  # objects without a mesh cannot be targets; checked when they are
-        pts = ObjectModel.load(ply, obj_id=oid).vertices
+        try:
+            pts = ObjectModel.load(ply, obj_id=oid, info=entry).vertices
+        except ModelError as exc:
+            raise BopScoringError(str(exc)) from exc
         out[oid] = {"pts": pts, "diameter": float(entry["diameter"]), "syms": bop_symmetry_transforms(entry),
                     "path": ply}
     if not out:

@@ -182,3 +182,124 @@ def test_degenerate_meshes_name_the_file(tmp_path):
     ok = trimesh.Trimesh(np.r_[box.vertices, box.vertices[:1]], np.r_[box.faces, [[0, 8, 1]]], process=False)
     ok.export(tmp_path / "mostly_fine.ply")
     assert len(ObjectModel.load(tmp_path / "mostly_fine.ply").faces) == 13
+
+
+# ---------------------------------------------------------------------------------------------
+# ground truth and estimates given to scoring (kpd6d-score exits 2 with its message)
+# ---------------------------------------------------------------------------------------------
+def _score_dataset(root):
+    """Scene 1, image 1: object 1 (a 100 mm cube) at 1 m; targets, models_eval, camera."""
+    import json
+
+    import trimesh
+
+    mdir = root / "models_eval"
+    mdir.mkdir(parents=True)
+    trimesh.creation.box(extents=(100, 100, 100)).export(mdir / "obj_000001.ply")
+    (mdir / "models_info.json").write_text(json.dumps({"1": {"diameter": 173.2}}))
+    sdir = root / "test" / "000001"
+    sdir.mkdir(parents=True)
+    (sdir / "scene_gt.json").write_text(json.dumps(
+        {"1": [{"obj_id": 1, "cam_R_m2c": np.eye(3).reshape(-1).tolist(), "cam_t_m2c": [0.0, 0.0, 1000.0]}]}))
+    (sdir / "scene_gt_info.json").write_text(json.dumps({"1": [{"visib_fract": 1.0, "bbox_obj": [0, 0, 10, 10],
+                                                               "bbox_visib": [0, 0, 10, 10], "px_count_all": 100,
+                                                               "px_count_valid": 100, "px_count_visib": 100}]}))
+    (sdir / "scene_camera.json").write_text(json.dumps({"1": {"cam_K": LINEMOD_K.reshape(-1).tolist(), "depth_scale": 1.0}}))
+    (root / "camera.json").write_text(json.dumps({"width": 640, "height": 480, "fx": 572.4, "fy": 573.6, "cx": 325.3,
+                                                  "cy": 242.0, "depth_scale": 1.0}))
+    (root / "test_targets_bop19.json").write_text(json.dumps([{"scene_id": 1, "im_id": 1, "obj_id": 1, "inst_count": 1}]))
+    return root
+
+
+def _csv(path, rows):
+    path.write_text("scene_id,im_id,obj_id,score,R,t,time\n" + "".join(f"{r}\n" for r in rows))
+    return path
+
+
+EYE = "1 0 0 0 1 0 0 0 1"
+
+
+def _score(csv, root, capsys):
+    from kpd6d.cli.score import main as score_main
+
+    before = {**_snapshot(root), csv: csv.read_bytes()}
+    code = score_main([str(csv), str(root)])
+    err = capsys.readouterr().err
+    assert {**_snapshot(root), csv: csv.read_bytes()} == before  # nothing given was changed
+    return code, err
+
+
+def test_score_accepts_the_good_dataset(tmp_path, capsys):
+    root = _score_dataset(tmp_path / "ds")
+    csv = _csv(tmp_path / "r.csv", [f"1,1,1,1.0,{EYE},0 0 1000,0.1"])
+    code, _ = _score(csv, root, capsys)
+    assert code == 0
+
+
+@pytest.mark.parametrize("rotation, why", [
+    ("1.2 0 0 0 1 0 0 0 1", "is not orthonormal"),
+    ("1 0 0 0 1 0 0 0 -1", "is a reflection"),
+    ("0 0 0 0 0 0 0 0 0", "is not orthonormal"),
+])
+def test_non_rotations_in_estimates_and_ground_truth(tmp_path, capsys, rotation, why):
+    import json
+
+    root = _score_dataset(tmp_path / "ds")
+    csv = _csv(tmp_path / "r.csv", [f"1,1,1,1.0,{EYE},0 0 1000,0.1", f"1,1,1,0.5,{rotation},0 0 1000,0.1"])
+    code, err = _score(csv, root, capsys)
+    assert code == 2 and f"r.csv:3: field 'R' {why}" in err, err
+    gt_file = root / "test" / "000001" / "scene_gt.json"
+    gt = json.loads(gt_file.read_text())
+    gt["1"][0]["cam_R_m2c"] = [float(v) for v in rotation.split()]
+    gt_file.write_text(json.dumps(gt))
+    code, err = _score(_csv(tmp_path / "good.csv", [f"1,1,1,1.0,{EYE},0 0 1000,0.1"]), root, capsys)
+    assert code == 2 and "scene_gt.json: image 1 instance 0 field 'cam_R_m2c' " + why in err, err
+
+
+def test_rounded_rotations_still_count_as_rotations():
+    from kpd6d.geometry import ROTATION_ATOL, rotation_problem
+
+    R = random_rotation(np.random.default_rng(0))
+    assert rotation_problem(np.round(R, 2)) == ""  # LM-O's GT is rounded about this much (max 0.0096)
+    assert rotation_problem(R * (1 + 2 * ROTATION_ATOL)).startswith("is not orthonormal")
+    assert "not finite" in rotation_problem(np.full((3, 3), np.nan))
+
+
+@pytest.mark.parametrize("diameter, shown", [(-5.0, "-5.0"), (0, "0"), ("abc", "'abc'"), (float("nan"), "nan"),
+                                             (None, "None")])
+def test_bad_diameters_in_models_info(tmp_path, capsys, diameter, shown):
+    import json
+
+    root = _score_dataset(tmp_path / "ds")
+    (root / "models_eval" / "models_info.json").write_text(json.dumps({"1": {"diameter": diameter}}))
+    code, err = _score(_csv(tmp_path / "r.csv", [f"1,1,1,1.0,{EYE},0 0 1000,0.1"]), root, capsys)
+    assert code == 2, err
+    assert f"models_info.json: object 1 field 'diameter' = {shown}" in err
+    assert "Traceback" not in err
+
+
+def test_targets_that_cannot_be_scored(tmp_path, capsys):
+    import json
+
+    root = _score_dataset(tmp_path / "ds")
+    targets = root / "test_targets_bop19.json"
+    csv = _csv(tmp_path / "r.csv", [f"1,1,1,1.0,{EYE},0 0 1000,0.1"])
+    targets.write_text(json.dumps([{"scene_id": 1, "im_id": 1, "obj_id": 1, "inst_count": 1},
+                                   {"scene_id": 1, "im_id": 1, "obj_id": 9, "inst_count": 1}]))
+    code, err = _score(csv, root, capsys)
+    assert code == 2 and "test_targets_bop19.json: target scene_id 1 im_id 1 obj_id 9: no model for object 9" in err, err
+    targets.write_text("[]")
+    code, err = _score(csv, root, capsys)
+    assert code == 2 and "test_targets_bop19.json: the targets file lists no targets" in err, err
+
+
+def test_estimates_all_outside_the_targets(tmp_path, capsys):
+    root = _score_dataset(tmp_path / "ds")
+    csv = _csv(tmp_path / "r.csv", [f"7,1,1,1.0,{EYE},0 0 1000,0.1", f"1,5,1,1.0,{EYE},0 0 1000,0.1"])
+    code, err = _score(csv, root, capsys)
+    assert code == 2, err
+    assert "r.csv: none of the 2 estimates is in a target image" in err and "(1, 5), (7, 1)" in err
+    # some estimates outside the targets are fine (ignored, as the BOP toolkit does)
+    code, _ = _score(_csv(tmp_path / "some.csv", [f"7,1,1,1.0,{EYE},0 0 1000,0.1", f"1,1,1,1.0,{EYE},0 0 1000,0.1"]),
+                     root, capsys)
+    assert code == 0

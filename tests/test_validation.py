@@ -303,3 +303,40 @@ def test_estimates_all_outside_the_targets(tmp_path, capsys):
     code, _ = _score(_csv(tmp_path / "some.csv", [f"7,1,1,1.0,{EYE},0 0 1000,0.1", f"1,1,1,1.0,{EYE},0 0 1000,0.1"]),
                      root, capsys)
     assert code == 0
+
+
+# ---------------------------------------------------------------------------------------------
+# degenerate detection boxes
+# ---------------------------------------------------------------------------------------------
+def _box_pipeline():
+    from test_pipeline import FakeKPD, _scene  # the pipeline tests' fake KPD (GT keypoints through a crop)
+
+    from kpd6d.pipeline import PosePipeline
+    from kpd6d.registry import DETECTORS
+
+    kp3d, gt, targets = _scene(np.random.default_rng(0))
+    return PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt), pnp="epnp", top_l=8, device="cpu"), targets
+
+
+def test_degenerate_boxes_never_give_ok_poses():
+    pipe, targets = _box_pipeline()
+    good = targets[0]["boxes"][0].copy()
+    boxes = np.stack([good, [good[0], good[1], 0.0, 0.0], [good[0], good[1], 1.5, 40.0], [700.0, 10.0, 50.0, 50.0],
+                      [-60.0, -60.0, 50.0, 50.0]])
+    t = {"boxes": boxes, "obj_ids": np.array([1, 1, 1, 1, 1]), "scores": np.array([0.9, 0.8, 0.7, 0.6, 0.5])}
+    out = pipe.predict_batch([np.zeros((480, 640, 3), np.uint8)], LINEMOD_K, [t])[0]
+    assert len(out) == 5  # failures are kept, never dropped
+    assert out[0]["ok"], out[0]["reason"]
+    for p, why in zip(out[1:], ["w or h below 2 px", "w or h below 2 px", "outside the 640x480 image",
+                                "outside the 640x480 image"]):
+        assert not p["ok"] and p["reason"].startswith("degenerate box [") and why in p["reason"], p["reason"]
+        assert np.isnan(p["R"]).all() and np.isnan(p["t"]).all()
+
+
+def test_a_one_pixel_image_gives_no_ok_pose():
+    pipe, targets = _box_pipeline()
+    t = {"boxes": np.array([[0.0, 0.0, 1.0, 1.0], [0.0, 0.0, 0.0, 0.0], [0.5, 0.5, 0.0, 1.0]]),
+         "obj_ids": np.array([1, 2, 1]), "scores": np.array([0.9, 0.8, 0.7])}
+    out = pipe.predict_batch([np.zeros((1, 1, 3), np.uint8)], LINEMOD_K, [t])[0]
+    assert len(out) == 3 and not any(p["ok"] for p in out)
+    assert all(p["reason"].startswith("degenerate box") for p in out), [p["reason"] for p in out]

@@ -340,3 +340,36 @@ def test_a_one_pixel_image_gives_no_ok_pose():
     out = pipe.predict_batch([np.zeros((1, 1, 3), np.uint8)], LINEMOD_K, [t])[0]
     assert len(out) == 3 and not any(p["ok"] for p in out)
     assert all(p["reason"].startswith("degenerate box") for p in out), [p["reason"] for p in out]
+
+
+# ---------------------------------------------------------------------------------------------
+# write errors name the destination (as root, chmod does not stop writes: simulate the OS errors)
+# ---------------------------------------------------------------------------------------------
+@pytest.mark.parametrize("code, kind, hint", [
+    ("ENOSPC", OSError, "the disk is full"),
+    ("EROFS", OSError, "read-only: choose another output folder"),
+    ("EACCES", PermissionError, "not writable"),
+])
+@pytest.mark.parametrize("where", ["os.replace", "tempfile.mkstemp"])
+def test_write_errors_name_the_path(tmp_path, monkeypatch, code, kind, hint, where):
+    import errno
+    import os
+    import tempfile
+
+    from kpd6d import io
+
+    dest = tmp_path / "out" / "metrics.json"
+    dest.parent.mkdir()
+    dest.write_text('{"old": 1}')
+    num = getattr(errno, code)
+
+    def fail(*a, **k):
+        raise OSError(num, os.strerror(num))
+
+    monkeypatch.setattr(os if where == "os.replace" else tempfile, where.split(".")[1], fail)
+    with pytest.raises(kind) as info:
+        io.atomic_write_json(dest, {"new": 2})
+    assert info.value.errno == num
+    assert f"cannot write '{dest}'" in str(info.value) and hint in str(info.value)
+    assert dest.read_text() == '{"old": 1}'  # the old file is intact
+    assert [p.name for p in dest.parent.iterdir()] == ["metrics.json"]  # no temporary file left

@@ -309,10 +309,9 @@ def test_estimates_all_outside_the_targets(tmp_path, capsys):
 # degenerate detection boxes
 # ---------------------------------------------------------------------------------------------
 def _box_pipeline():
-    from test_pipeline import FakeKPD, _scene  # the pipeline tests' fake KPD (GT keypoints through a crop)
-
     from kpd6d.pipeline import PosePipeline
     from kpd6d.registry import DETECTORS
+    from test_pipeline import FakeKPD, _scene  # the pipeline tests' fake KPD (GT keypoints through a crop)
 
     kp3d, gt, targets = _scene(np.random.default_rng(0))
     return PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt), pnp="epnp", top_l=8, device="cpu"), targets
@@ -334,7 +333,7 @@ def test_degenerate_boxes_never_give_ok_poses():
 
 
 def test_a_one_pixel_image_gives_no_ok_pose():
-    pipe, targets = _box_pipeline()
+    pipe, _ = _box_pipeline()
     t = {"boxes": np.array([[0.0, 0.0, 1.0, 1.0], [0.0, 0.0, 0.0, 0.0], [0.5, 0.5, 0.0, 1.0]]),
          "obj_ids": np.array([1, 2, 1]), "scores": np.array([0.9, 0.8, 0.7])}
     out = pipe.predict_batch([np.zeros((1, 1, 3), np.uint8)], LINEMOD_K, [t])[0]
@@ -373,3 +372,60 @@ def test_write_errors_name_the_path(tmp_path, monkeypatch, code, kind, hint, whe
     assert f"cannot write '{dest}'" in str(info.value) and hint in str(info.value)
     assert dest.read_text() == '{"old": 1}'  # the old file is intact
     assert [p.name for p in dest.parent.iterdir()] == ["metrics.json"]  # no temporary file left
+
+
+# ---------------------------------------------------------------------------------------------
+# config values of the wrong type name their key
+# ---------------------------------------------------------------------------------------------
+def test_cfg_int_and_float_name_the_key():
+    from omegaconf import OmegaConf
+
+    from kpd6d.config import ConfigError, cfg_float, cfg_int
+
+    cfg = OmegaConf.create({"designator": {"num_keypoints": "abc", "k": 8, "f": 2.5, "b": True}, "seed": "3"})
+    assert cfg_int(cfg, "designator.k") == 8 and cfg_int(cfg, "seed") == 3 and cfg_float(cfg, "designator.f") == 2.5
+    assert cfg_int(cfg, "designator.missing", 5) == 5
+    for key, bad in (("designator.num_keypoints", "'abc'"), ("designator.f", "2.5"), ("designator.b", "True")):
+        with pytest.raises(ConfigError, match=rf"^{key} must be an integer, got {bad}$"):
+            cfg_int(cfg, key)
+    with pytest.raises(ConfigError, match=r"^designator\.num_keypoints must be a number, got 'abc'$"):
+        cfg_float(cfg, "designator.num_keypoints")
+    with pytest.raises(ConfigError, match=r"config key designator\.nope is missing"):
+        cfg_int(cfg, "designator.nope")
+    assert issubclass(ConfigError, ValueError)  # callers catching ValueError still do
+
+
+@pytest.mark.parametrize("designator, key, value", [
+    ({"name": "fps", "num_keypoints": "abc"}, "designator.num_keypoints", "'abc'"),
+    ({"name": "fps", "num_surface_samples": "many"}, "designator.num_surface_samples", "'many'"),
+    ({"name": "sift", "fill": "lots"}, "designator.fill", "'lots'"),
+])
+def test_designator_parameters_of_the_wrong_type(tmp_path, designator, key, value):
+    from kpd6d.config import ConfigError
+    from kpd6d.keypoints.designate import designate_from_config
+
+    cfg = {"designator": designator, "out_dir": str(tmp_path / "kp"), "obj_ids": [1], "progress": False,
+           "overview": {"enabled": False}}
+    with pytest.raises(ConfigError, match=rf"{key} must be (an integer|a number), got {value}") as info:
+        designate_from_config(cfg)
+    assert "invalid literal" not in str(info.value)
+    assert not (tmp_path / "kp" / "keypoints.json").exists()  # nothing designated
+
+
+def test_designation_and_generation_settings_of_the_wrong_type(tmp_path):
+    from kpd6d.config import ConfigError
+    from kpd6d.keypoints.designate import designate_from_config
+    from kpd6d.synth import generate_dataset
+
+    cfg = {"designator": {"name": "fps", "num_keypoints": 4}, "out_dir": str(tmp_path / "kp"), "obj_ids": [1],
+           "progress": False, "procedural_seed": "x"}
+    with pytest.raises(ConfigError, match=r"procedural_seed must be an integer, got 'x'"):
+        designate_from_config(cfg)
+    for kwargs, match in (({"num_images": "abc"}, r"num_images must be an integer, got 'abc'"),
+                          ({"workers": "two"}, r"workers must be an integer, got 'two'"),
+                          ({"width": "wide"}, r"width must be an integer, got 'wide'"),
+                          ({"designator": {"name": "fps", "num_keypoints": "abc"}},
+                           r"designator\.num_keypoints must be an integer, got 'abc'")):
+        with pytest.raises(ConfigError, match=match):
+            generate_dataset(tmp_path / "ds", **{"num_images": 1, "progress": False, **kwargs})
+        assert not (tmp_path / "ds" / "train").exists()

@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpd6d.config import cfg_int
 from kpd6d.io import to_plain
 
 __all__ = ["run_evaluation", "run_experiment"]
@@ -68,19 +69,22 @@ def generate(cfg, root: Path) -> None:
     options = dict(to_plain(d.options) or {})
     # keypoints live in the run (keypoints.json) so that runs with other designators share one dataset
     options.setdefault("designator", None)
-    for i, (split, n) in enumerate((("train", d.num_train), ("val", d.num_val), (cfg.evaluate.split, d.num_test))):
+    counts = [(split, cfg_int(cfg, f"data.{key}") if d[key] else 0)
+              for split, key in (("train", "num_train"), ("val", "num_val"), (cfg.evaluate.split, "num_test"))]
+    seed, workers = cfg_int(cfg, "seed"), cfg_int(cfg, "data.workers")
+    for i, (split, n) in enumerate(counts):
         if not n:
             continue
         _log(f"generating {n} {split} images into {root}")
-        generate_dataset(root, models_dir=cfg.objects.models_dir, obj_ids=to_plain(cfg.objects.obj_ids), num_images=int(n),
-                         split=split, seed=int(cfg.seed) * 1000 + i, workers=int(d.workers), progress=bool(cfg.progress),
+        generate_dataset(root, models_dir=cfg.objects.models_dir, obj_ids=to_plain(cfg.objects.obj_ids), num_images=n,
+                         split=split, seed=seed * 1000 + i, workers=workers, progress=bool(cfg.progress),
                          **options)
 
 
 def _stage_cfg(cfg, stage_key: str, run_dir: Path, root: Path, **extra):
     from omegaconf import OmegaConf
 
-    node = {"seed": int(cfg.seed), "run_dir": str(run_dir), "stage": to_plain(cfg[stage_key]),
+    node = {"seed": cfg_int(cfg, "seed"), "run_dir": str(run_dir), "stage": to_plain(cfg[stage_key]),
             "data": {"root": str(root), "train_split": "train", "val_split": "val"}}
     node.update(extra)
     return OmegaConf.create(node)

@@ -71,6 +71,23 @@ def test_pnp_gate_rejects_random_points_for_every_solver():
     assert sum(v > 0 for v in accepted_without.values()) >= 4, accepted_without
 
 
+def test_pnp_gate_in_the_pipeline_rejects_poses_fitted_to_outliers():
+    """4 of 12 keypoints 80 px off and no top-l: plain EPnP is far off (tests/test_pipeline.py); with
+    the default gate those poses are not ok, and top-l's correct poses still are."""
+    from kpd6d.pipeline import PosePipeline
+    from kpd6d.registry import DETECTORS
+    from test_pipeline import K_PTS, FakeKPD, _images, _scene
+
+    kp3d, gt, targets = _scene(np.random.default_rng(2))
+    for top_l, want in ((None, False), (K_PTS - 4, True)):
+        out = PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt, bad=4), pnp="epnp", top_l=top_l,
+                           device="cpu").predict_batch(_images(), LINEMOD_K, targets)
+        for p in (p for preds in out for p in preds):
+            assert p["ok"] is want, (top_l, p["reason"])
+            if not want:
+                assert "exceeds max_relative_residual=0.2" in p["reason"]
+
+
 def test_pnp_gate_reason_and_config():
     from omegaconf import OmegaConf
 

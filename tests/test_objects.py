@@ -41,7 +41,7 @@ def test_units_m_scales_by_1000(tmp_path, coloured_box):
     m = ObjectModel.load(p, units="m", obj_id=3)
     assert np.allclose(m.vertices, coloured_box.vertices, atol=1e-6)
     assert m.diameter == pytest.approx(ObjectModel(obj_id=0, mesh=coloured_box).diameter, rel=1e-6)
-    mm = ObjectModel.load(p)  # read as millimetres: 1000x smaller
+    mm = ObjectModel.load(p, units="mm")  # read as millimetres (stated: the default would reject it): 1000x smaller
     assert mm.diameter == pytest.approx(m.diameter / 1000, rel=1e-6)
 
 

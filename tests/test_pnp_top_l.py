@@ -29,5 +29,6 @@ def test_solve_top_l_ignores_low_confidence_outliers():
     est_top = solve_top_l({"name": "epnp"}, kp3, bad[None], LINEMOD_K, conf[None], l=8)[0]
     assert est_top.ok
     np.testing.assert_allclose(est_top.t, t, atol=1e-3)
-    est_all = solve_top_l({"name": "epnp"}, kp3, bad[None], LINEMOD_K, conf[None], l=None)[0]
+    est_all = solve_top_l({"name": "epnp", "max_relative_residual": None}, kp3, bad[None], LINEMOD_K, conf[None],
+                          l=None)[0]  # the validity gate off: the spoilt pose is measured, not rejected
     assert np.linalg.norm(est_all.t - t) > 1.0  # with all keypoints the outliers spoil the pose

@@ -8,6 +8,7 @@ BOP file formats (scene_gt.json, camera.json, ...) live in :mod:`kpd6d.data.bop_
 
 from __future__ import annotations
 
+import errno
 import json
 import os
 import sys
@@ -28,6 +29,7 @@ __all__ = [
     "read_image",
     "read_json",
     "to_plain",
+    "write_error",
 ]
 
 
@@ -64,21 +66,47 @@ def to_plain(x: Any) -> Any:
 # ---------------------------------------------------------------------------------------------
 # atomic writes
 # ---------------------------------------------------------------------------------------------
+_WRITE_HINTS = {
+    errno.ENOSPC: "the disk is full: free space there or choose another output folder",
+    errno.EDQUOT: "the disk quota is exceeded: free space there or choose another output folder",
+    errno.EROFS: "the file system is read-only: choose another output folder",
+    errno.EACCES: "the folder is not writable: fix its permissions or choose another output folder",
+    errno.EPERM: "the folder is not writable: fix its permissions or choose another output folder",
+}
+
+
+def write_error(path: str | os.PathLike, exc: OSError) -> OSError:
+    """``exc`` (from writing ``path``) as an OSError of the same kind (same errno, so ENOSPC stays
+    ENOSPC and EACCES a PermissionError) whose message names the destination and what to do."""
+    hint = _WRITE_HINTS.get(exc.errno or -1)
+    why = exc.strerror or str(exc)
+    msg = f"cannot write '{path}': {why}" + (f"; {hint}" if hint else "")
+    return OSError(exc.errno, msg) if exc.errno is not None else OSError(msg)
+
+
 def atomic_write_bytes(path: str | os.PathLike, data: bytes) -> Path:
-    """Write ``data`` to ``path`` through a temporary file in the same folder + ``os.replace``."""
+    """Write ``data`` to ``path`` through a temporary file in the same folder + ``os.replace``.
+
+    An OSError (full disk, read-only or unwritable folder, ...) is re-raised by :func:`write_error`:
+    same errno, message naming ``path`` with a hint; no temporary file is left behind."""
     path = Path(path)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    except OSError as exc:
+        raise write_error(path, exc) from exc
     try:
         os.fchmod(fd, _FILE_MODE)  # mkstemp makes 0600 files; give the usual permissions
         with os.fdopen(fd, "wb") as f:
             f.write(data)
         os.replace(tmp, path)
-    except BaseException:
+    except BaseException as exc:
         try:
             os.unlink(tmp)
         except OSError:
             pass
+        if isinstance(exc, OSError):
+            raise write_error(path, exc) from exc
         raise
     return path
 

@@ -4,7 +4,8 @@
 per detected object: ``obj_id``, ``R`` (3, 3), ``t`` (3,) mm, ``score`` (the detection score),
 ``keypoints_2d`` (k, 2) image px, ``confidences`` (k,), plus ``box`` (4,) xywh, ``used`` (k,) bool
 (the top-l keypoints given to PnP) and ``ok`` / ``reason`` from PnP (``R``/``t`` are NaN when not
-ok: a failure, never dropped). :meth:`PosePipeline.predict_batch` does the same for a batch of
+ok: a failure, never dropped); a detection box with w or h below :data:`MIN_BOX_PX` or outside the
+image is not ok, with reason "degenerate box ...". :meth:`PosePipeline.predict_batch` does the same for a batch of
 images (one detector call, one KPD call over every object of every image, one batched PnP).
 ``refine_boxes=n`` (default 0, the paper) repeats crop -> KPD -> PnP n more times, each time on the
 box of the object projected with the pose just estimated: the crop no longer depends on the
@@ -26,9 +27,10 @@ from typing import Any
 import numpy as np
 import torch
 
+from kpd6d.geometry import MIN_BOX_PX, box_problem
 from kpd6d.pnp.top_l import solve_top_l, top_l_mask
 
-__all__ = ["PipelineInputError", "PosePipeline", "default_device", "images_to_tensor"]
+__all__ = ["MIN_BOX_PX", "PipelineInputError", "PosePipeline", "box_problem", "default_device", "images_to_tensor"]
 
 
 class PipelineInputError(ValueError):
@@ -213,12 +215,18 @@ class PosePipeline:
                 boxes_t = self._boxes_from_poses(est, obj_ids, img_idx, Ks, boxes_t, x.shape[-2:])
         t3 = time.perf_counter()
 
-        R, t, ok = np.asarray(est.R), np.asarray(est.t), np.asarray(est.ok)
+        R, t, ok = np.array(est.R, dtype=np.float64), np.array(est.t, dtype=np.float64), np.array(est.ok, dtype=bool)
+        reasons = list(est.reasons)
+        H, W = int(x.shape[-2]), int(x.shape[-1])
+        for n, box in enumerate(boxes):  # the detector's box: a degenerate one never gives an ok pose
+            why = box_problem(box, W, H)
+            if why:
+                R[n], t[n], ok[n], reasons[n] = np.nan, np.nan, False, why
         for n, b in enumerate(img_idx):
             out[b].append({
                 "obj_id": obj_ids[n], "R": R[n], "t": t[n], "score": scores[n],
                 "keypoints_2d": kp2d_np[n], "confidences": conf_np[n], "used": used_np[n],
-                "box": np.asarray(boxes[n]), "ok": bool(ok[n]), "reason": est.reasons[n],
+                "box": np.asarray(boxes[n]), "ok": bool(ok[n]), "reason": reasons[n],
             })
         self.last_timings = {"detect": t1 - t0, "kpd": t_kpd, "pnp": t_pnp, "total": t3 - t0}
         return out

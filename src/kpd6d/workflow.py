@@ -21,6 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpd6d.config import cfg_int
 from kpd6d.io import to_plain
 
 __all__ = ["run_evaluation", "run_experiment"]
@@ -68,16 +69,18 @@ def generate(cfg, root: Path) -> None:
     options = dict(to_plain(d.options) or {})
     # keypoints live in the run (keypoints.json) so that runs with other designators share one dataset
     options.setdefault("designator", None)
-    splits = [("train", d.num_train), ("val", d.num_val), (cfg.evaluate.split, d.num_test)]
-    generate_splits(root, [(s, n, int(cfg.seed) * 1000 + i) for i, (s, n) in enumerate(splits)],
-                    models_dir=cfg.objects.models_dir, obj_ids=cfg.objects.obj_ids, workers=int(d.workers),
+    counts = [(split, cfg_int(cfg, f"data.{key}") if d[key] else 0)
+              for split, key in (("train", "num_train"), ("val", "num_val"), (cfg.evaluate.split, "num_test"))]
+    seed, workers = cfg_int(cfg, "seed"), cfg_int(cfg, "data.workers")
+    generate_splits(root, [(s, n, seed * 1000 + i) for i, (s, n) in enumerate(counts)],
+                    models_dir=cfg.objects.models_dir, obj_ids=cfg.objects.obj_ids, workers=workers,
                     progress=bool(cfg.progress), options=options, log=_log)
 
 
 def _stage_cfg(cfg, stage_key: str, run_dir: Path, root: Path, **extra):
     from omegaconf import OmegaConf
 
-    node = {"seed": int(cfg.seed), "run_dir": str(run_dir), "stage": to_plain(cfg[stage_key]),
+    node = {"seed": cfg_int(cfg, "seed"), "run_dir": str(run_dir), "stage": to_plain(cfg[stage_key]),
             "data": {"root": str(root), "train_split": "train", "val_split": "val"}}
     node.update(extra)
     return OmegaConf.create(node)

@@ -26,6 +26,8 @@ from typing import Any
 
 import numpy as np
 
+from kpd6d.geometry import rotation_problem
+
 # the generic file helpers live in kpd6d.io; re-exported here for old import paths
 from kpd6d.io import (
     FileFormatError,
@@ -117,9 +119,13 @@ def load_scene_gt(path: str | os.PathLike) -> dict[int, list[dict]]:
         insts = []
         for j, e in enumerate(entries):
             where = f"image {im_id} instance {j}"
+            R = _field(path, where, e, "cam_R_m2c", 9).reshape(3, 3)
+            why = rotation_problem(R)
+            if why:
+                raise BopFormatError(f"{path}: {where} field 'cam_R_m2c' {why}: {e['cam_R_m2c']!r}")
             insts.append({
                 "obj_id": _field(path, where, e, "obj_id", kind=int),
-                "R": _field(path, where, e, "cam_R_m2c", 9).reshape(3, 3),
+                "R": R,
                 "t": _field(path, where, e, "cam_t_m2c", 3),
             })
         out[im_id] = insts

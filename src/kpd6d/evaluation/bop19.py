@@ -121,6 +121,9 @@ def load_bop_gt(root: str | os.PathLike, split: str = "test",
     for key in ds.targets or {}:  # targets without an annotated frame entry (all instances filtered)
         targets.setdefault(key, dict(ds.targets[key]))
         instances.setdefault(key, [])
+    if not ds.targets:
+        raise BopScoringError(f"{root / targets_filename}: the targets file lists no targets; nothing to score "
+                              f"(a BOP19 targets file lists scene_id, im_id, obj_id, inst_count entries)")
     return BopGt(targets, instances, Ks, widths)
 
 
@@ -134,17 +137,23 @@ def bop_symmetry_transforms(info: dict, max_sym_disc_step: float = MAX_SYM_DISC_
 
 def load_eval_models(root: str | os.PathLike) -> dict[int, dict]:
     """``{obj_id: {"pts": (N, 3), "diameter": d, "syms": (S, 4, 4)}}`` from models_eval/ (else models/)."""
-    from kpd6d.objects import ObjectModel, load_models_info
+    from kpd6d.objects import ModelError, ObjectModel, load_models_info
 
     root = Path(root)
     mdir = root / "models_eval" if (root / "models_eval" / "models_info.json").is_file() else root / "models"
-    info = load_models_info(mdir / "models_info.json")
+    try:
+        info = load_models_info(mdir / "models_info.json")
+    except ModelError as exc:
+        raise BopScoringError(str(exc)) from exc
     out = {}
     for oid, entry in info.items():
         ply = mdir / f"obj_{oid:06d}.ply"
         if not ply.is_file():
             continue  # objects without a mesh cannot be targets; checked when they are
-        pts = ObjectModel.load(ply, obj_id=oid).vertices
+        try:
+            pts = ObjectModel.load(ply, obj_id=oid, info=entry).vertices
+        except ModelError as exc:
+            raise BopScoringError(str(exc)) from exc
         out[oid] = {"pts": pts, "diameter": float(entry["diameter"]), "syms": bop_symmetry_transforms(entry),
                     "path": ply}
     if not out:
@@ -246,6 +255,7 @@ def score_bop19(results: Sequence[PoseResult], root: str | os.PathLike, split: s
     root = Path(root)
     gt = gt if gt is not None else load_bop_gt(root, split, targets_filename)
     models = models if models is not None else load_eval_models(root)
+    check_targets_and_results(results, gt, models, root / targets_filename)
 
     # organise estimates by (scene, im, obj) in file order
     ests: dict[tuple[int, int, int], list[int]] = defaultdict(list)
@@ -347,9 +357,34 @@ def score_bop19(results: Sequence[PoseResult], root: str | os.PathLike, split: s
     }
 
 
+def check_targets_and_results(results: Sequence[PoseResult], gt: BopGt, models: dict[int, dict],
+                              targets_path: str | os.PathLike, results_source: str = "the estimates") -> None:
+    """Scoring input that would give a meaningless score raises :class:`BopScoringError`: a target
+    object without an evaluation model, or estimates none of which is in a target image."""
+    for (scene, im), objs in sorted(gt.targets.items()):
+        for oid in sorted(objs):
+            if oid not in models:
+                raise BopScoringError(f"{targets_path}: target scene_id {scene} im_id {im} obj_id {oid}: no model for "
+                                      f"object {oid} (objects with models: {sorted(models)})")
+    if results and not any((r.scene_id, r.im_id) in gt.targets for r in results):
+        seen = sorted({(r.scene_id, r.im_id) for r in results})
+        raise BopScoringError(f"{results_source}: none of the {len(results)} estimates is in a target image of "
+                              f"{targets_path} (estimates' (scene_id, im_id): {seen[:5]}{' ...' if len(seen) > 5 else ''}; "
+                              f"targets: {sorted(gt.targets)[:5]}{' ...' if len(gt.targets) > 5 else ''}); wrong dataset or split?")
+
+
 def score_bop19_file(results_csv: str | os.PathLike, root: str | os.PathLike, **kwargs) -> dict:
     """:func:`score_bop19` on a BOP results CSV."""
-    return score_bop19(read_bop_results(results_csv), root, **kwargs)
+    results = read_bop_results(results_csv)
+    root = Path(root)
+    split = kwargs.get("split", "test")
+    targets_filename = kwargs.get("targets_filename", "test_targets_bop19.json")
+    if kwargs.get("gt") is None:
+        kwargs["gt"] = load_bop_gt(root, split, targets_filename)
+    if kwargs.get("models") is None:
+        kwargs["models"] = load_eval_models(root)
+    check_targets_and_results(results, kwargs["gt"], kwargs["models"], root / targets_filename, str(results_csv))
+    return score_bop19(results, root, **kwargs)
 
 
 def format_scores_table(scores: dict) -> str:

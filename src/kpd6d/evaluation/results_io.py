@@ -18,6 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpd6d.geometry import rotation_problem
 from kpd6d.io import atomic_write_text
 
 __all__ = ["HEADER", "PoseResult", "ResultsFormatError", "read_bop_results", "write_bop_results"]
@@ -89,6 +90,9 @@ def read_bop_results(path: str | os.PathLike) -> list[PoseResult]:
         if not math.isfinite(score):
             raise ResultsFormatError(f"{path}:{lineno}: field 'score' is not finite: {row[3]!r}")
         R = _parse_floats(row[4], 9, path, lineno, "R").reshape(3, 3)
+        why = rotation_problem(R)
+        if why:
+            raise ResultsFormatError(f"{path}:{lineno}: field 'R' {why}: {row[4]!r}")
         t = _parse_floats(row[5], 3, path, lineno, "t")
         tm = -1.0
         if has_time:

@@ -47,12 +47,21 @@ def _same_params(a: dict, b: dict) -> bool:
     return json.dumps(a, sort_keys=True) == json.dumps(b, sort_keys=True)
 
 
-def designator_name_params(cfg) -> tuple[str, dict[str, Any]]:
-    """``(name, params)`` of a designator config node (``{"name": ..., **params}``, conf/designator/)."""
+def designator_name_params(cfg, where: str = "designator") -> tuple[str, dict[str, Any]]:
+    """``(name, params)`` of a designator config node (``{"name": ..., **params}``, conf/designator/).
+
+    Parameters that should be numbers and are not raise :class:`kpd6d.config.ConfigError` naming
+    ``<where>.<parameter>`` and the value (``designator.num_keypoints=abc``)."""
+    from kpd6d.config import check_number_fields
+    from kpd6d.registry import DESIGNATORS
+
     params = _jsonable(dict(cfg or {}))
     if "name" not in params:
         raise KeyError(f"the designator config has no 'name' (got keys {sorted(params)})")
-    return params.pop("name"), params
+    name = params.pop("name")
+    if name in DESIGNATORS:
+        check_number_fields(params, DESIGNATORS.get(name), where)
+    return name, params
 
 
 def designate_objects(models: Sequence, designator: str, params: dict[str, Any], cache_path: str | os.PathLike,
@@ -145,6 +154,7 @@ def designate_from_config(cfg) -> tuple[Path, dict[int, np.ndarray], list[int]]:
     file, the keypoints and the ids taken from the cache."""
     from omegaconf import OmegaConf
 
+    from kpd6d.config import cfg_int
     from kpd6d.objects import load_bop_models, procedural_objects
 
     c = OmegaConf.to_container(cfg, resolve=True) if OmegaConf.is_config(cfg) else dict(cfg)
@@ -160,7 +170,7 @@ def designate_from_config(cfg) -> tuple[Path, dict[int, np.ndarray], list[int]]:
     if c.get("models_dir"):
         models = load_bop_models(c["models_dir"], obj_ids=obj_ids)
     else:
-        models = procedural_objects(seed=int(c.get("procedural_seed", 0)), obj_ids=obj_ids)
+        models = procedural_objects(seed=cfg_int(c, "procedural_seed", 0), obj_ids=obj_ids)
     out_dir = Path(c["out_dir"])
     out_dir.mkdir(parents=True, exist_ok=True)
     cache = out_dir / c.get("cache_name", "keypoints.json")
@@ -168,8 +178,8 @@ def designate_from_config(cfg) -> tuple[Path, dict[int, np.ndarray], list[int]]:
     points, reused = designate_objects(models, name, params, cache, progress=progress)
     ov = c.get("overview") or {}
     if ov.get("enabled", True):
-        write_overviews(models, points, out_dir, name, num_views=int(ov.get("num_views", 6)),
-                        image_size=int(ov.get("image_size", 320)), progress=progress)
+        write_overviews(models, points, out_dir, name, num_views=cfg_int(c, "overview.num_views", 6),
+                        image_size=cfg_int(c, "overview.image_size", 320), progress=progress)
     return cache, points, reused
 
 

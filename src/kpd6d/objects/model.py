@@ -9,9 +9,24 @@ from typing import Any
 
 import numpy as np
 
-__all__ = ["ModelError", "ObjectModel", "load_bop_models", "load_models_info"]
+__all__ = ["MIN_DIAMETER_MM", "ModelError", "ObjectModel", "load_bop_models", "load_models_info"]
 
 _UNIT_SCALE = {"mm": 1.0, "cm": 10.0, "m": 1000.0}
+
+#: A mesh loaded with the default units (millimetres, not stated) whose size (bounding-box
+#: diagonal, or its models_info diameter) is below this is an error: it looks like a file in metres.
+#: Pose-estimation objects are 20-500 mm (LineMod 100-300 mm), so in metres they measure 0.02-0.5;
+#: every object up to 2 m stored in metres is caught, and a real object below 2 mm is not a
+#: plausible target. A genuinely tiny object passes when the caller states ``units="mm"``.
+MIN_DIAMETER_MM = 2.0
+
+#: A face counts as degenerate when its area is below this fraction of the squared box diagonal.
+_DEGENERATE_AREA_RTOL = 1e-12
+
+
+def _units_message(where: str, size: float) -> str:
+    return (f"{where}: the object measures {size:.4g} (mm assumed), implausible for millimetres (< {MIN_DIAMETER_MM:g} mm): "
+            f"looks like metres; pass units='m' (or scale the file); a genuinely tiny object: pass units='mm'")
 
 
 class ModelError(ValueError):
@@ -103,17 +118,23 @@ class ObjectModel:
 
     # -- I/O ----------------------------------------------------------------------------------
     @classmethod
-    def load(cls, path: str | os.PathLike, units: str = "mm", obj_id: int | None = None,
+    def load(cls, path: str | os.PathLike, units: str | None = None, obj_id: int | None = None,
              info: dict | None = None) -> ObjectModel:
         """Load a PLY / OBJ / GLB mesh through trimesh, keeping vertex colours or textures.
 
         ``units`` is the unit the file is stored in ("mm", "cm" or "m"); vertices are scaled to mm.
+        None (the default) means millimetres, checked: a mesh (or models_info diameter) below
+        :data:`MIN_DIAMETER_MM` raises :class:`ModelError` ("looks like metres"); an explicit
+        ``units="mm"`` skips that check (tiny objects). Meshes whose faces are all (or nearly all)
+        of zero area raise :class:`ModelError` too.
         ``obj_id`` defaults to the trailing number of the file name (BOP's ``obj_000005.ply`` -> 5).
         ``info`` is this object's models_info.json entry (diameter and symmetries are taken from it).
         """
         import trimesh
 
         path = Path(path)
+        checked = units is None
+        units = "mm" if units is None else units
         if units not in _UNIT_SCALE:
             raise ModelError(f"{path}: unknown units {units!r}; use one of {sorted(_UNIT_SCALE)}")
         if not path.exists():
@@ -139,9 +160,17 @@ class ObjectModel:
             )
         if not np.isfinite(np.asarray(loaded.vertices)).all():
             raise ModelError(f"{path}: mesh has non-finite (NaN/inf) vertex coordinates")
+        _check_faces(path, loaded)
         scale = _UNIT_SCALE[units]
         if scale != 1.0:
             loaded.apply_scale(scale)
+        if checked:
+            size = float(np.linalg.norm(np.ptp(np.asarray(loaded.vertices, dtype=np.float64), axis=0)))
+            if size < MIN_DIAMETER_MM:
+                raise ModelError(_units_message(str(path), size))
+            if info and "diameter" in info and float(info["diameter"]) < MIN_DIAMETER_MM:
+                raise ModelError(_units_message(f"{path}: models_info diameter {float(info['diameter']):.4g}",
+                                                float(info["diameter"])))
         if obj_id is None:
             digits = "".join(ch for ch in path.stem.split("_")[-1] if ch.isdigit())
             obj_id = int(digits) if digits else 0
@@ -159,6 +188,22 @@ class ObjectModel:
             {"axis": list(map(float, s["axis"])), "offset": list(map(float, s.get("offset", [0, 0, 0])))}
             for s in info.get("symmetries_continuous", [])
         ]
+
+
+def _check_faces(path: Path, mesh) -> None:
+    """A mesh must have faces of non-zero area (a mesh of zero-area faces designates identical keypoints)."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    f = np.asarray(mesh.faces, dtype=np.int64)
+    if f.min() < 0 or f.max() >= len(v):
+        raise ModelError(f"{path}: faces refer to vertex {int(f.max()) if f.max() >= len(v) else int(f.min())}; "
+                         f"the mesh has {len(v)} vertices")
+    diag2 = float(np.sum(np.ptp(v, axis=0) ** 2))
+    tri = v[f]
+    area = 0.5 * np.linalg.norm(np.cross(tri[:, 1] - tri[:, 0], tri[:, 2] - tri[:, 0]), axis=1)
+    good = int(np.sum(area > _DEGENERATE_AREA_RTOL * diag2)) if diag2 > 0 else 0
+    if good < 4 or good < 0.01 * len(f):
+        raise ModelError(f"{path}: degenerate mesh: {len(f) - good} of {len(f)} faces have zero area "
+                         f"({good} usable; need >= 4 and >= 1 %); the file is broken or its vertices collapsed")
 
 
 def _diameter(v: np.ndarray) -> float:
@@ -195,6 +240,11 @@ def load_models_info(path: str | os.PathLike) -> dict[int, dict]:
             raise ModelError(f"{path}: object id {key!r} is not an integer") from None
         if not isinstance(entry, dict) or "diameter" not in entry:
             raise ModelError(f"{path}: entry {key!r} has no 'diameter' field")
+        d = entry["diameter"]
+        if isinstance(d, bool) or not isinstance(d, (int, float)):
+            raise ModelError(f"{path}: object {key} field 'diameter' = {d!r} is not a number")
+        if not (np.isfinite(d) and d > 0):
+            raise ModelError(f"{path}: object {key} field 'diameter' = {d!r}; must be a finite number > 0 (mm)")
         for j, s in enumerate(entry.get("symmetries_discrete", [])):
             if len(s) != 16:
                 raise ModelError(f"{path}: object {key} symmetries_discrete[{j}] has {len(s)} values, expected 16")
@@ -205,12 +255,20 @@ def load_models_info(path: str | os.PathLike) -> dict[int, dict]:
     return out
 
 
-def load_bop_models(models_dir: str | os.PathLike, obj_ids: list[int] | None = None) -> list[ObjectModel]:
-    """Load ``obj_XXXXXX.ply`` meshes of a BOP models folder with their models_info.json entries."""
+def load_bop_models(models_dir: str | os.PathLike, obj_ids: list[int] | None = None,
+                    units: str | None = None) -> list[ObjectModel]:
+    """Load ``obj_XXXXXX.ply`` meshes of a BOP models folder with their models_info.json entries.
+
+    ``units`` as in :meth:`ObjectModel.load` (None: millimetres, checked for plausibility)."""
     models_dir = Path(models_dir)
     info = load_models_info(models_dir / "models_info.json")
     ids = sorted(info) if obj_ids is None else list(obj_ids)
     missing = [i for i in ids if i not in info]
     if missing:
         raise ModelError(f"{models_dir / 'models_info.json'}: no entry for object id(s) {missing}; known: {sorted(info)}")
-    return [ObjectModel.load(models_dir / f"obj_{i:06d}.ply", obj_id=i, info=info[i]) for i in ids]
+    if units is None:
+        small = [(i, float(info[i]["diameter"])) for i in ids if float(info[i]["diameter"]) < MIN_DIAMETER_MM]
+        if small:
+            raise ModelError(_units_message(f"{models_dir / 'models_info.json'}: object {small[0][0]} diameter "
+                                            f"{small[0][1]:.4g}", small[0][1]))
+    return [ObjectModel.load(models_dir / f"obj_{i:06d}.ply", units=units, obj_id=i, info=info[i]) for i in ids]

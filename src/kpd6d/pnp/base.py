@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from kpd6d.pnp.checks import diagnose_inputs, diagnose_solutions
+from kpd6d.pnp.checks import MAX_RELATIVE_RESIDUAL, diagnose_inputs, diagnose_solutions
 
 __all__ = ["BatchPoseEstimate", "PnPSolver", "PoseEstimate", "Problems"]
 
@@ -123,16 +123,25 @@ class PnPSolver:
 
     ``max_reprojection_error`` (px, default None = off): when set, a solution whose median
     reprojection error over its used points exceeds it is returned with ``ok=False``.
+    ``max_relative_residual`` (default :data:`kpd6d.pnp.checks.MAX_RELATIVE_RESIDUAL` = 0.2; None =
+    off) is the default validity gate: a solution whose median reprojection error exceeds this
+    fraction of the object's projected size (floor 4 px) is returned with ``ok=False`` (so points
+    that fit no pose, e.g. random ones, are never ok).
     """
 
     name: str = "pnp"
     min_points: int = 4
     coplanar_rtol: float | None = None
 
-    def __init__(self, max_reprojection_error: float | None = None) -> None:
+    def __init__(self, max_reprojection_error: float | None = None,
+                 max_relative_residual: float | None = MAX_RELATIVE_RESIDUAL) -> None:
         if max_reprojection_error is not None and not max_reprojection_error > 0:
             raise ValueError(f"{self.name}: max_reprojection_error must be > 0 or None, got {max_reprojection_error!r}")
+        if max_relative_residual is not None and not (isinstance(max_relative_residual, (int, float))
+                                                      and max_relative_residual > 0):
+            raise ValueError(f"{self.name}: max_relative_residual must be > 0 or None, got {max_relative_residual!r}")
         self.max_reprojection_error = max_reprojection_error
+        self.max_relative_residual = None if max_relative_residual is None else float(max_relative_residual)
 
     def __repr__(self) -> str:
         params = ", ".join(f"{k}={v!r}" for k, v in vars(self).items() if not k.startswith("_") and k != "min_points")
@@ -163,6 +172,7 @@ class PnPSolver:
             post = diagnose_solutions(
                 R_s, t_s, probs.points_3d[todo], probs.points_2d[todo], probs.K[todo], inl_s,
                 max_reprojection_error=self.max_reprojection_error,
+                max_relative_residual=getattr(self, "max_relative_residual", MAX_RELATIVE_RESIDUAL),
             )
             for j, i in enumerate(todo):
                 reasons[i] = why[j] or post[j]

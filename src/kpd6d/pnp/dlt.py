@@ -11,6 +11,7 @@ from __future__ import annotations
 import numpy as np
 
 from kpd6d.pnp.base import PnPSolver, Problems
+from kpd6d.pnp.checks import MAX_RELATIVE_RESIDUAL
 from kpd6d.registry import PNP_SOLVERS
 
 __all__ = ["DLT", "dlt_poses"]
@@ -52,8 +53,9 @@ class DLT(PnPSolver):
     min_points = 6
     coplanar_rtol = 1e-3  # stricter than kornia's own rank check, so a batch is not rejected whole
 
-    def __init__(self, device: str | None = None, max_reprojection_error: float | None = None) -> None:
-        super().__init__(max_reprojection_error)
+    def __init__(self, device: str | None = None, max_reprojection_error: float | None = None,
+                 max_relative_residual: float | None = MAX_RELATIVE_RESIDUAL) -> None:
+        super().__init__(max_reprojection_error, max_relative_residual)
         self.device = device
 
     def _torch_inputs(self, probs: Problems, todo: np.ndarray, use: np.ndarray):

@@ -18,6 +18,7 @@ import cv2
 import numpy as np
 
 from kpd6d.pnp.base import PnPSolver, Problems
+from kpd6d.pnp.checks import MAX_RELATIVE_RESIDUAL
 from kpd6d.registry import PNP_SOLVERS
 
 __all__ = ["EPnP", "EPnPRansac", "Iterative", "OpenCVSolver", "SQPnP"]
@@ -106,8 +107,9 @@ class EPnPRansac(OpenCVSolver):
 
     def __init__(self, reprojection_error: float = 8.0, iterations: int = 100, confidence: float = 0.99,
                  refine: bool = True, seed: int | None = 0, min_inliers: int = 5,
-                 max_reprojection_error: float | None = None) -> None:
-        super().__init__(max_reprojection_error)
+                 max_reprojection_error: float | None = None,
+                 max_relative_residual: float | None = MAX_RELATIVE_RESIDUAL) -> None:
+        super().__init__(max_reprojection_error, max_relative_residual)
         if not reprojection_error > 0:
             raise ValueError(f"epnp_ransac: reprojection_error must be > 0 px, got {reprojection_error!r}")
         if int(iterations) < 1:

@@ -22,6 +22,7 @@ import numpy as np
 
 from kpd6d.geometry import project_points, transform_points
 from kpd6d.pnp.base import PnPSolver, Problems
+from kpd6d.pnp.checks import MAX_RELATIVE_RESIDUAL
 from kpd6d.registry import PNP_SOLVERS
 
 __all__ = ["WeightedLM", "lm_refine"]
@@ -113,8 +114,9 @@ class WeightedLM(PnPSolver):
     name = "weighted_lm"
 
     def __init__(self, init: str = "epnp", batch_init: str | None = "dlt", max_iters: int = 30,
-                 device: str | None = None, max_reprojection_error: float | None = None) -> None:
-        super().__init__(max_reprojection_error)
+                 device: str | None = None, max_reprojection_error: float | None = None,
+                 max_relative_residual: float | None = MAX_RELATIVE_RESIDUAL) -> None:
+        super().__init__(max_reprojection_error, max_relative_residual)
         if init == "weighted_lm" or batch_init == "weighted_lm":
             raise ValueError("weighted_lm cannot initialise itself; pick another PnP solver for init/batch_init")
         if int(max_iters) < 1:
@@ -123,8 +125,9 @@ class WeightedLM(PnPSolver):
         self.batch_init = batch_init
         self.max_iters = int(max_iters)
         self.device = device
-        self._init = PNP_SOLVERS.build(init)
-        self._batch_init = None if batch_init is None else PNP_SOLVERS.build(batch_init)
+        # starting poses are not gated: LM may turn a poor start into a good pose; the gate judges the result
+        self._init = PNP_SOLVERS.build(init, max_relative_residual=None)
+        self._batch_init = None if batch_init is None else PNP_SOLVERS.build(batch_init, max_relative_residual=None)
         self.min_points = self._init.min_points
         if self._batch_init is not None:
             self.min_points = min(self.min_points, self._batch_init.min_points)

@@ -10,6 +10,7 @@ from typing import Any
 
 import numpy as np
 
+from kpd6d.config import to_int
 from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K
 from kpd6d.synth.photometric import PhotometricConfig
 from kpd6d.synth.poses import ViewRanges
@@ -108,7 +109,7 @@ class SynthConfig:
         return cfg
 
     def validate(self) -> None:
-        self.width, self.height = int(self.width), int(self.height)
+        self.width, self.height = to_int(self.width, "width"), to_int(self.height, "height")
         if self.width < 8 or self.height < 8:
             raise ValueError(f"image size must be at least 8x8, got width={self.width}, height={self.height}")
         if self.K is not None:
@@ -145,7 +146,7 @@ class SynthConfig:
             raise ValueError(f"lighting must be 'random', 'indoor' or 'fixed', got {self.lighting!r}")
         if self.rgb_format not in ("png", "jpg"):
             raise ValueError(f"rgb_format must be 'png' or 'jpg', got {self.rgb_format!r}")
-        if int(self.scene_size) < 1:
+        if to_int(self.scene_size, "scene_size") < 1:
             raise ValueError(f"scene_size must be >= 1, got {self.scene_size}")
         if self.depth_scale <= 0:
             raise ValueError(f"depth_scale must be > 0, got {self.depth_scale}")

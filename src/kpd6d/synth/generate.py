@@ -19,6 +19,7 @@ from typing import Any
 
 import numpy as np
 
+from kpd6d.config import to_int
 from kpd6d.data.bop_io import (
     BopFormatError,
     load_scene_camera,
@@ -291,7 +292,8 @@ def generate_dataset(out_dir: str | os.PathLike, models_dir: str | os.PathLike |
     Returns the dataset root. Rerunning with the same arguments resumes an interrupted run.
     """
     cfg = SynthConfig.from_options(options)
-    num_images = int(num_images)
+    num_images, seed = to_int(num_images, "num_images"), to_int(seed, "seed")
+    workers = None if workers is None else to_int(workers, "workers")
     if num_images < 0:
         raise ValueError(f"num_images must be >= 0, got {num_images}")
     if not split or "/" in split or split in (".", ".."):

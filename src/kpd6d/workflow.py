@@ -199,9 +199,9 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     from kpd6d.io import atomic_write_text
 
     t_start = time.time()
-    if not cfg.detector_ckpt:  # settings of an earlier version: named before any data is made
-        from kpd6d.config import check_stage_config
+    from kpd6d.config import check_stage_config
 
+    if not cfg.detector_ckpt:  # settings of an earlier version: named before any data is made
         check_stage_config(cfg.detector_stage, "detector_stage")
     if not cfg.kpd_ckpt:
         check_stage_config(cfg.kpd_stage, "kpd_stage")

@@ -446,3 +446,19 @@ def test_designation_and_generation_settings_of_the_wrong_type(tmp_path):
         with pytest.raises(ConfigError, match=match):
             generate_dataset(tmp_path / "ds", **{"num_images": 1, "progress": False, **kwargs})
         assert not (tmp_path / "ds" / "train").exists()
+
+
+def test_kpd_input_size_zero_fails_before_any_data_or_training(tmp_path):
+    """issue 20: ``stage.kpd.codec.input_size=0`` used to fail deep in the loss after training had started."""
+    from omegaconf import OmegaConf
+
+    from kpd6d.config import config_dir
+    from kpd6d.kpd.train import train_kpd
+    from hydra import compose, initialize_config_dir
+
+    with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
+        cfg = compose("train", ["stage=kpd", "stage.kpd.codec.input_size=0", f"+run_dir={tmp_path}"])
+    OmegaConf.set_struct(cfg, False)
+    with pytest.raises(ValueError, match=r"input_size 0 must be a positive multiple"):
+        train_kpd(cfg)
+    assert not (tmp_path / "data").exists()  # nothing generated, nothing trained

@@ -68,6 +68,9 @@ def train_kpd(cfg) -> Path:
     check_stage_config(cfg.stage)
     k = cfg.stage.kpd
     scheduler = scheduler_config(k)  # config errors before any data is generated
+    from kpd6d.kpd.codec import build_codec
+
+    build_codec(to_plain(k.codec))  # a bad crop size / stride / sigma, too
     run_dir = run_dir_of(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
     seed_and_threads(cfg.seed, k.get("num_threads"))

@@ -450,11 +450,11 @@ def test_designation_and_generation_settings_of_the_wrong_type(tmp_path):
 
 def test_kpd_input_size_zero_fails_before_any_data_or_training(tmp_path):
     """issue 20: ``stage.kpd.codec.input_size=0`` used to fail deep in the loss after training had started."""
+    from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
     from kpd6d.config import config_dir
     from kpd6d.kpd.train import train_kpd
-    from hydra import compose, initialize_config_dir
 
     with initialize_config_dir(config_dir=str(config_dir()), version_base=None):
         cfg = compose("train", ["stage=kpd", "stage.kpd.codec.input_size=0", f"+run_dir={tmp_path}"])

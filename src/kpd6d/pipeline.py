@@ -28,7 +28,7 @@ import numpy as np
 import torch
 
 from kpd6d.geometry import MIN_BOX_PX, box_problem
-from kpd6d.pnp.top_l import solve_top_l, top_l_mask
+from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
 __all__ = ["MIN_BOX_PX", "PipelineInputError", "PosePipeline", "box_problem", "default_device", "images_to_tensor"]
 
@@ -215,19 +215,7 @@ class PosePipeline:
                 boxes_t = self._boxes_from_poses(est, obj_ids, img_idx, Ks, boxes_t, x.shape[-2:])
         t3 = time.perf_counter()
 
-        R, t, ok = np.array(est.R, dtype=np.float64), np.array(est.t, dtype=np.float64), np.array(est.ok, dtype=bool)
-        reasons = list(est.reasons)
-        H, W = int(x.shape[-2]), int(x.shape[-1])
-        for n, box in enumerate(boxes):  # the detector's box: a degenerate one never gives an ok pose
-            why = box_problem(box, W, H)
-            if why:
-                R[n], t[n], ok[n], reasons[n] = np.nan, np.nan, False, why
-        for n, b in enumerate(img_idx):
-            out[b].append({
-                "obj_id": obj_ids[n], "R": R[n], "t": t[n], "score": scores[n],
-                "keypoints_2d": kp2d_np[n], "confidences": conf_np[n], "used": used_np[n],
-                "box": np.asarray(boxes[n]), "ok": bool(ok[n]), "reason": reasons[n],
-            })
+        pose_records(est, boxes, x.shape[-2:], img_idx, obj_ids, scores, kp2d_np, conf_np, used_np, out)
         self.last_timings = {"detect": t1 - t0, "kpd": t_kpd, "pnp": t_pnp, "total": t3 - t0}
         return out
 

@@ -36,13 +36,12 @@ from kpd6d.deploy.ops import (
 from kpd6d.geometry import (
     affine_apply,
     bbox_from_points,
-    box_problem,
     box_to_crop_affine,
     invert_affine,
     project_points,
 )
 from kpd6d.kpd.decoders_numpy import build_numpy_decoder, heatmap_to_crop
-from kpd6d.pnp.top_l import top_l_mask
+from kpd6d.pnp.top_l import pose_records, top_l_mask
 
 __all__ = ["RUNTIME_BACKENDS", "BackendUnavailableError", "RuntimeDetector", "RuntimeKPD", "RuntimePipeline",
            "Session", "read_sidecar"]
@@ -284,19 +283,7 @@ class RuntimePipeline:
             if it < self.refine_boxes:
                 boxes_np = self._boxes_from_poses(est, obj_ids, img_idx, Ks, boxes_np, x.shape[1:3])
         t3 = time.perf_counter()
-        R, t, ok = np.array(est.R, dtype=np.float64), np.array(est.t, dtype=np.float64), np.array(est.ok, dtype=bool)
-        reasons = list(est.reasons)
-        H, W = int(x.shape[1]), int(x.shape[2])
-        for n, box in enumerate(boxes):  # as PosePipeline: a degenerate detector box never gives an ok pose
-            why = box_problem(box, W, H)
-            if why:
-                R[n], t[n], ok[n], reasons[n] = np.nan, np.nan, False, why
-        for n, b in enumerate(img_idx):
-            out[b].append({
-                "obj_id": obj_ids[n], "R": R[n], "t": t[n], "score": scores[n],
-                "keypoints_2d": kp2d_np[n], "confidences": conf_np[n], "used": used[n],
-                "box": np.asarray(boxes[n]), "ok": bool(ok[n]), "reason": reasons[n],
-            })
+        pose_records(est, boxes, x.shape[1:3], img_idx, obj_ids, scores, kp2d_np, conf_np, used, out)
         self.last_timings = {"detect": t1 - t0, "kpd": t_kpd, "pnp": t_pnp, "total": t3 - t0}
         return out
 

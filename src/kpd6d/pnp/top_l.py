@@ -73,3 +73,25 @@ def solve_top_l(solver, keypoints_3d, keypoints_2d, K, confidences, l: int | Non
     used = top_l_mask(c, l)
     weights = np.where(used, np.maximum(c, 1e-6) if weighted else 1.0, 0.0)
     return solver.solve_batch(np.ascontiguousarray(p3), p2, np.ascontiguousarray(Ks), weights)
+
+
+def pose_records(est, boxes, image_hw, img_idx, obj_ids, scores, keypoints_2d, confidences, used, out) -> None:
+    """Append one pose dict per instance to ``out[image]`` (the pipelines' output records): ``obj_id``,
+    ``R``, ``t``, ``score``, ``keypoints_2d``, ``confidences``, ``used``, ``box``, ``ok``, ``reason``
+    from the batched PnP result ``est``. A degenerate detector box (:func:`kpd6d.geometry.box_problem`
+    in an image of ``image_hw`` = (H, W)) never gives an ok pose: its R, t become NaN with the reason."""
+    from kpd6d.geometry import box_problem
+
+    R, t, ok = np.array(est.R, dtype=np.float64), np.array(est.t, dtype=np.float64), np.array(est.ok, dtype=bool)
+    reasons = list(est.reasons)
+    H, W = int(image_hw[0]), int(image_hw[1])
+    for n, box in enumerate(boxes):
+        why = box_problem(box, W, H)
+        if why:
+            R[n], t[n], ok[n], reasons[n] = np.nan, np.nan, False, why
+    for n, b in enumerate(img_idx):
+        out[b].append({
+            "obj_id": obj_ids[n], "R": R[n], "t": t[n], "score": scores[n],
+            "keypoints_2d": keypoints_2d[n], "confidences": confidences[n], "used": used[n],
+            "box": np.asarray(boxes[n]), "ok": bool(ok[n]), "reason": reasons[n],
+        })

@@ -462,3 +462,16 @@ def test_kpd_input_size_zero_fails_before_any_data_or_training(tmp_path):
     with pytest.raises(ValueError, match=r"input_size 0 must be a positive multiple"):
         train_kpd(cfg)
     assert not (tmp_path / "data").exists()  # nothing generated, nothing trained
+
+
+def test_evaluation_and_prediction_numbers_name_their_key():
+    """issue 20: the evaluate / predict settings read as integers name the key and the value."""
+    from omegaconf import OmegaConf
+
+    from kpd6d.config import ConfigError, cfg_int
+
+    cfg = OmegaConf.create({"batch_size": "four", "evaluate": {"overlays": 2.5}})
+    with pytest.raises(ConfigError, match=r"batch_size must be an integer, got 'four'"):
+        cfg_int(cfg, "batch_size")
+    with pytest.raises(ConfigError, match=r"evaluate\.overlays must be an integer, got 2\.5"):
+        cfg_int(cfg, "evaluate.overlays")

@@ -20,6 +20,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from kpd6d.config import cfg_int, to_int
 from kpd6d.geometry import LINEMOD_K
 from kpd6d.io import atomic_write_image, atomic_write_text
 from kpd6d.visualize import draw_predictions
@@ -217,8 +218,8 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
     pipe = PosePipeline.for_backend(backend, detector_ckpt=det,
                                     kpd_ckpt=OmegaConf.select(cfg, "kpd_ckpt", default=None, throw_on_missing=torch_backend),
                                     export_dir=cfg.get("export_dir"), pnp=OmegaConf.to_container(cfg.pnp, resolve=True),
-                                    top_l=cfg.select.top_l, refine_boxes=int(cfg.get("refine_boxes", 0) or 0),
+                                    top_l=cfg.select.top_l, refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
                                     device=cfg.device)
-    return predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=int(cfg.batch_size),
+    return predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=cfg_int(cfg, "batch_size"),
                           overlays=bool(cfg.overlays), progress=bool(cfg.progress),
                           stop_on_error=bool(cfg.get("stop_on_error", False)))

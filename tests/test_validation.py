@@ -475,3 +475,15 @@ def test_evaluation_and_prediction_numbers_name_their_key():
         cfg_int(cfg, "batch_size")
     with pytest.raises(ConfigError, match=r"evaluate\.overlays must be an integer, got 2\.5"):
         cfg_int(cfg, "evaluate.overlays")
+
+
+def test_per_object_designator_overrides_of_the_wrong_type_name_the_object(tmp_path):
+    from kpd6d.config import ConfigError
+    from kpd6d.keypoints.designate import designate_objects
+    from kpd6d.objects import procedural_objects
+
+    models = procedural_objects(obj_ids=[1])
+    with pytest.raises(ConfigError, match=r"designator_per_object\.1\.num_keypoints must be an integer, got 'abc'"):
+        designate_objects(models, "fps", {"num_keypoints": 8}, tmp_path / "kp.json",
+                          per_object={1: {"num_keypoints": "abc"}}, progress=False)
+    assert not (tmp_path / "kp.json").exists()

@@ -85,6 +85,11 @@ def designate_objects(models: Sequence, designator: str, params: dict[str, Any],
     if overrides:
         recorded["per_object"] = {str(k): v for k, v in sorted(overrides.items())}
     build = DESIGNATORS.build(designator, **params)  # fails early on unknown names / parameters
+    if designator in DESIGNATORS:
+        from kpd6d.config import check_number_fields
+
+        for oid, over in overrides.items():  # wrong types name designator_per_object.<id>.<parameter>
+            check_number_fields(over, DESIGNATORS.get(designator), f"designator_per_object.{oid}")
     builds = {oid: DESIGNATORS.build(designator, **{**params, **over}) for oid, over in overrides.items()}
     cache_path = Path(cache_path)
     points: dict[int, np.ndarray] = {}

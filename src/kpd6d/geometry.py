@@ -29,6 +29,7 @@ __all__ = [
     "bbox_from_points",
     "box_problem",
     "box_to_crop_affine",
+    "check_intrinsics",
     "compose_poses",
     "cv_pose_to_gl_camera_pose",
     "cv_pose_to_gl_model_view",
@@ -414,3 +415,13 @@ def box_problem(box, width: int, height: int, min_size: float = MIN_BOX_PX) -> s
     if x >= width or y >= height or x + w <= 0 or y + h <= 0:
         return f"degenerate box {shown} (x, y, w, h): outside the {width}x{height} image"
     return ""
+
+
+def check_intrinsics(K, n: int, error: type[Exception] = ValueError) -> np.ndarray:
+    """``K`` (3, 3) or (n, 3, 3), finite -> contiguous float64 (n, 3, 3); else ``error`` saying why."""
+    K = np.asarray(K, dtype=np.float64)
+    if K.shape == (3, 3):
+        K = np.broadcast_to(K, (n, 3, 3))
+    if K.shape != (n, 3, 3) or not np.isfinite(K).all():
+        raise error(f"K must be (3, 3) or ({n}, 3, 3) finite intrinsics, got shape {K.shape}")
+    return np.ascontiguousarray(K)

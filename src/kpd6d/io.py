@@ -28,6 +28,7 @@ __all__ = [
     "dumps_json",
     "read_image",
     "read_json",
+    "stack_rgb_images",
     "to_plain",
     "write_error",
 ]
@@ -185,3 +186,17 @@ def read_json(path: str | os.PathLike, *, what: str = "JSON file", error: type[E
         raise error(f"{path}: invalid JSON ({exc})") from exc
     except UnicodeDecodeError as exc:
         raise error(f"{path}: not a text file ({exc})") from exc
+
+
+def stack_rgb_images(images, error: type[Exception] = ValueError) -> np.ndarray:
+    """uint8 RGB images (H, W, 3) (a list or a (B, H, W, 3) array, equal sizes) -> uint8 (B, H, W, 3);
+    a wrong shape, dtype or a mixed-size batch raises ``error`` naming the image."""
+    arr = [np.asarray(im) for im in (images if isinstance(images, (list, tuple)) else list(np.asarray(images)))]
+    for i, im in enumerate(arr):
+        if im.ndim != 3 or im.shape[2] != 3:
+            raise error(f"image {i} must be (H, W, 3) RGB, got shape {im.shape}")
+        if im.dtype != np.uint8:
+            raise error(f"image {i} must be uint8 RGB (0..255), got dtype {im.dtype}")
+        if im.shape != arr[0].shape:
+            raise error(f"images of one batch must have one size: image 0 is {arr[0].shape}, image {i} is {im.shape}")
+    return np.stack(arr)

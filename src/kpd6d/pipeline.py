@@ -27,7 +27,8 @@ from typing import Any
 import numpy as np
 import torch
 
-from kpd6d.geometry import MIN_BOX_PX, box_problem
+from kpd6d.geometry import MIN_BOX_PX, box_problem, check_intrinsics
+from kpd6d.io import stack_rgb_images
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
 __all__ = ["MIN_BOX_PX", "PipelineInputError", "PosePipeline", "box_problem", "default_device", "images_to_tensor"]
@@ -43,26 +44,12 @@ def default_device() -> torch.device:
 
 def images_to_tensor(images: Sequence[np.ndarray] | np.ndarray, device: Any = "cpu") -> torch.Tensor:
     """uint8 RGB images (H, W, 3) (a list or a (B, H, W, 3) array, equal sizes) -> float (B, 3, H, W) in [0, 1]."""
-    arr = [np.asarray(im) for im in (images if isinstance(images, (list, tuple)) else list(np.asarray(images)))]
-    for i, im in enumerate(arr):
-        if im.ndim != 3 or im.shape[2] != 3:
-            raise PipelineInputError(f"image {i} must be (H, W, 3) RGB, got shape {im.shape}")
-        if im.dtype != np.uint8:
-            raise PipelineInputError(f"image {i} must be uint8 RGB (0..255), got dtype {im.dtype}")
-        if im.shape != arr[0].shape:
-            raise PipelineInputError(f"images of one batch must have one size: image 0 is {arr[0].shape}, "
-                                     f"image {i} is {im.shape}")
-    x = torch.from_numpy(np.stack(arr)).to(device)
+    x = torch.from_numpy(stack_rgb_images(images, PipelineInputError)).to(device)
     return x.permute(0, 3, 1, 2).float().div_(255.0)
 
 
 def _check_K(K, n: int) -> np.ndarray:
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape == (3, 3):
-        K = np.broadcast_to(K, (n, 3, 3))
-    if K.shape != (n, 3, 3) or not np.isfinite(K).all():
-        raise PipelineInputError(f"K must be (3, 3) or ({n}, 3, 3) finite intrinsics, got shape {K.shape}")
-    return np.ascontiguousarray(K)
+    return check_intrinsics(K, n, PipelineInputError)
 
 
 class PosePipeline:

@@ -37,9 +37,11 @@ from kpd6d.geometry import (
     affine_apply,
     bbox_from_points,
     box_to_crop_affine,
+    check_intrinsics,
     invert_affine,
     project_points,
 )
+from kpd6d.io import stack_rgb_images
 from kpd6d.kpd.decoders_numpy import build_numpy_decoder, heatmap_to_crop
 from kpd6d.pnp.top_l import pose_records, top_l_mask
 
@@ -307,23 +309,9 @@ class RuntimePipeline:
 
 
 def _images_to_float(images) -> np.ndarray:
-    """uint8 RGB images (H, W, 3) (a list or (B, H, W, 3)) → float32 (B, H, W, 3) in [0, 1]."""
-    arr = [np.asarray(im) for im in (images if isinstance(images, (list, tuple)) else list(np.asarray(images)))]
-    for i, im in enumerate(arr):
-        if im.ndim != 3 or im.shape[2] != 3:
-            raise ValueError(f"image {i} must be (H, W, 3) RGB, got shape {im.shape}")
-        if im.dtype != np.uint8:
-            raise ValueError(f"image {i} must be uint8 RGB (0..255), got dtype {im.dtype}")
-        if im.shape != arr[0].shape:
-            raise ValueError(f"images of one batch must have one size: image 0 is {arr[0].shape}, "
-                             f"image {i} is {im.shape}")
-    return np.stack(arr).astype(np.float32) / np.float32(255.0)
+    """uint8 RGB images (H, W, 3) (a list or (B, H, W, 3)) -> float32 (B, H, W, 3) in [0, 1]."""
+    return stack_rgb_images(images).astype(np.float32) / np.float32(255.0)
 
 
 def _check_K(K, n: int) -> np.ndarray:
-    K = np.asarray(K, dtype=np.float64)
-    if K.shape == (3, 3):
-        K = np.broadcast_to(K, (n, 3, 3))
-    if K.shape != (n, 3, 3) or not np.isfinite(K).all():
-        raise ValueError(f"K must be (3, 3) or ({n}, 3, 3) finite intrinsics, got shape {K.shape}")
-    return np.ascontiguousarray(K)
+    return check_intrinsics(K, n)

@@ -182,6 +182,7 @@ def _compare_poses(want, have):
             np.testing.assert_allclose(h["keypoints_2d"], w["keypoints_2d"], atol=0.05)
             np.testing.assert_allclose(h["confidences"], w["confidences"], atol=1e-3)  # crops differ by float32 rounding
             assert h["ok"] == w["ok"]
+            assert h["confidence"] == pytest.approx(w["confidence"], abs=1e-3)
             if w["ok"]:
                 n_ok += 1
                 assert np.abs(h["t"] - w["t"]).max() < 0.1
@@ -209,6 +210,11 @@ def test_pipeline_from_export_matches_torch_end_to_end(models, backend):
     assert rt.backend == backend and rt.refine_boxes == 1
     want, have = torch_pipe.predict_batch(images, K, _targets()), rt.predict_batch(images, K, _targets())
     assert _compare_poses(want, have) >= 1
+    # KPD + PnP on given boxes (what tracking runs): the same poses as the oracle's boxes gave
+    boxes = [(b, box, oid) for b, tg in enumerate(_targets()) for box, oid in zip(tg["boxes"], tg["obj_ids"])]
+    args = ([B[1] for B in boxes], [B[2] for B in boxes], [B[0] for B in boxes])
+    assert _compare_poses(want, rt.predict_boxes(images, K, *args)) >= 1
+    assert _compare_poses(want, torch_pipe.predict_boxes(images, K, *args)) >= 1
     # the exported detector, end to end
     torch_pipe = PosePipeline(models["det"], models["kpd"], device="cpu", **kw)
     rt = PosePipeline.from_export(models["export"], backend=backend, **kw)

@@ -4,10 +4,11 @@ never torch, kornia or :mod:`kpd6d.kpd.module` (tests/test_deploy.py checks ``sy
 fresh process; tests/test_layering.py checks the imports).
 
 :class:`RuntimePipeline` has the interface of :class:`kpd6d.pipeline.PosePipeline` (``__call__``,
-``predict_batch``, ``last_timings``, ``kpd.keypoints_3d``, ``refine_boxes``) and returns the same
-pose dicts with numpy arrays: detector (resize → ``detector.onnx`` → numpy peaks / top-k /
-post-processing, or the oracle's GT boxes) → crops (numpy bilinear, the codec's affine) →
-``kpd.onnx`` → the codec's decoder in numpy (:mod:`kpd6d.kpd.decoders_numpy`) → top-l → PnP
+``predict_batch``, ``detect``, ``predict_boxes``, ``object_points``, ``last_timings``,
+``kpd.keypoints_3d``, ``refine_boxes``, ``min_confidence``) and returns the same pose dicts with
+numpy arrays: detector (resize → ``detector.onnx`` → numpy peaks / top-k / post-processing, or
+the oracle's GT boxes) → crops (numpy bilinear, the codec's affine) → ``kpd.onnx`` → the codec's
+decoder in numpy (:mod:`kpd6d.kpd.decoders_numpy`) → top-l → PnP
 (``PNP_SOLVERS``, numpy / OpenCV).
 
 Backends: ``onnxruntime`` (``CPUExecutionProvider``) and ``openvino`` (reads the ONNX files; CPU,
@@ -43,6 +44,7 @@ from kpd6d.geometry import (
 )
 from kpd6d.io import stack_rgb_images
 from kpd6d.kpd.decoders_numpy import build_numpy_decoder, heatmap_to_crop
+from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, top_l_mask
 
 __all__ = ["RUNTIME_BACKENDS", "BackendUnavailableError", "RuntimeDetector", "RuntimeKPD", "RuntimePipeline",
@@ -220,7 +222,8 @@ class RuntimePipeline:
 
     def __init__(self, export_dir: str | os.PathLike, backend: str = "onnxruntime", pnp: Any = "epnp_ransac",
                  top_l: int | None = 20, refine_boxes: int = 0, detector: str = "export",
-                 obj_ids: Sequence[int] | None = None, threads: int | None = None, **detector_overrides: Any) -> None:
+                 obj_ids: Sequence[int] | None = None, threads: int | None = None, min_confidence: float = 0.0,
+                 residual_scale_px: float = RESIDUAL_SCALE_PX, **detector_overrides: Any) -> None:
         from kpd6d.registry import PNP_SOLVERS, build_from_cfg
 
         if backend not in RUNTIME_BACKENDS:
@@ -229,6 +232,11 @@ class RuntimePipeline:
             raise ValueError(f"top_l must be >= 4 (PnP needs at least 4 points) or None, got {top_l}")
         if int(refine_boxes) < 0:
             raise ValueError(f"refine_boxes must be >= 0, got {refine_boxes}")
+        if not 0.0 <= float(min_confidence) <= 1.0:
+            raise ValueError(f"min_confidence must be in [0, 1], got {min_confidence}")
+        if not float(residual_scale_px) > 0:
+            raise ValueError(f"residual_scale_px must be > 0, got {residual_scale_px}")
+        self.min_confidence, self.residual_scale_px = float(min_confidence), float(residual_scale_px)
         self.export_dir, self.backend = Path(export_dir), backend
         self.sidecar = read_sidecar(export_dir)
         self.kpd = RuntimeKPD(export_dir, self.sidecar["kpd"], backend, threads)
@@ -249,28 +257,76 @@ class RuntimePipeline:
         """Poses for a batch of uint8 (H, W, 3) RGB images (as :meth:`PosePipeline.predict_batch`)."""
         t0 = time.perf_counter()
         x = _images_to_float(images)
+        Ks = _check_K(K, x.shape[0])
+        dets = self._detect(x, targets)
+        t1 = time.perf_counter()
+        out = self._estimate(x, Ks, [d["box"] for d in dets], [d["image_index"] for d in dets],
+                             [d["obj_id"] for d in dets], [d["score"] for d in dets])
+        self.last_timings["detect"] = t1 - t0
+        self.last_timings["total"] = time.perf_counter() - t0
+        return out
+
+    def detect(self, images, targets: list[dict] | None = None) -> list[list[dict]]:
+        """The detector alone (as :meth:`PosePipeline.detect`): per image ``[{"box", "obj_id", "score"}]``."""
+        t0 = time.perf_counter()
+        x = _images_to_float(images)
+        out: list[list[dict]] = [[] for _ in range(x.shape[0])]
+        for d in self._detect(x, targets):
+            out[d["image_index"]].append({"box": d["box"], "obj_id": d["obj_id"], "score": d["score"]})
+        dt = time.perf_counter() - t0
+        self.last_timings = {"detect": dt, "kpd": 0.0, "pnp": 0.0, "total": dt}
+        return out
+
+    def predict_boxes(self, images, K, boxes, obj_ids, image_index=None, scores=None) -> list[list[dict]]:
+        """KPD + PnP on given boxes, no detector (as :meth:`PosePipeline.predict_boxes`)."""
+        t0 = time.perf_counter()
+        x = _images_to_float(images)
+        Ks = _check_K(K, x.shape[0])
+        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+        N = boxes.shape[0]
+        obj_ids = [int(o) for o in np.asarray(obj_ids).reshape(-1)]
+        img_idx = [0] * N if image_index is None else [int(b) for b in np.asarray(image_index).reshape(-1)]
+        scores = [1.0] * N if scores is None else [float(v) for v in np.asarray(scores).reshape(-1)]
+        if not (len(obj_ids) == len(img_idx) == len(scores) == N):
+            raise ValueError(f"predict_boxes: {N} boxes but {len(obj_ids)} obj_ids, {len(img_idx)} image indices "
+                             f"and {len(scores)} scores")
+        if any(not 0 <= b < x.shape[0] for b in img_idx):
+            raise ValueError(f"predict_boxes: image_index out of range [0, {x.shape[0]})")
+        unknown = sorted(set(obj_ids) - {int(o) for o in self.kpd.keypoints_3d})
+        if unknown:
+            raise ValueError(f"predict_boxes: the KPD has no keypoints for object(s) {unknown}")
+        out = self._estimate(x, Ks, boxes.tolist(), img_idx, obj_ids, scores)
+        self.last_timings["detect"] = 0.0
+        self.last_timings["total"] = time.perf_counter() - t0
+        return out
+
+    def object_points(self, obj_id: int) -> np.ndarray:
+        """(P, 3) mm surface points of ``obj_id`` (as :meth:`PosePipeline.object_points`)."""
+        return np.asarray(self.kpd.surface_points(int(obj_id)), dtype=np.float64).reshape(-1, 3)
+
+    def _detect(self, x: np.ndarray, targets) -> list[dict]:
         B = x.shape[0]
-        Ks = _check_K(K, B)
         dets = self.detector.predict(x, targets=targets)
         if len(dets) != B:
             raise ValueError(f"detector returned {len(dets)} results for {B} images")
-        t1 = time.perf_counter()
         known = set(self.kpd.keypoints_3d)
-        boxes, img_idx, obj_ids, scores = [], [], [], []
+        flat = []
         for b, d in enumerate(dets):
             for box, oid, s in zip(d.boxes.tolist(), d.obj_ids.tolist(), d.scores.tolist()):
                 if int(oid) in known:
-                    boxes.append(box)
-                    img_idx.append(b)
-                    obj_ids.append(int(oid))
-                    scores.append(float(s))
-        out: list[list[dict]] = [[] for _ in range(B)]
+                    flat.append({"box": box, "image_index": b, "obj_id": int(oid), "score": float(s)})
+        return flat
+
+    def _estimate(self, x: np.ndarray, Ks: np.ndarray, boxes: list, img_idx: list[int], obj_ids: list[int],
+                  scores: list[float]) -> list[list[dict]]:
+        out: list[list[dict]] = [[] for _ in range(x.shape[0])]
         if not boxes:
-            self.last_timings = {"detect": t1 - t0, "kpd": 0.0, "pnp": 0.0, "total": time.perf_counter() - t0}
+            self.last_timings = {"detect": 0.0, "kpd": 0.0, "pnp": 0.0, "total": 0.0}
             return out
         boxes_np = np.asarray(boxes, dtype=np.float32)
         idx = np.asarray(img_idx)
         pts3d = np.stack([self.kpd.keypoints_3d[o].reshape(-1, 3) for o in obj_ids])
+        Kn = np.ascontiguousarray(Ks[idx])
         t_kpd = t_pnp = 0.0
         for it in range(self.refine_boxes + 1):
             ta = time.perf_counter()
@@ -279,14 +335,15 @@ class RuntimePipeline:
             kp2d_np, conf_np = kp2d.astype(np.float64), conf.astype(np.float64)
             used = top_l_mask(conf_np, self.top_l)
             weights = np.where(used, np.maximum(conf_np, 1e-6), 0.0)
-            est = self.pnp.solve_batch(np.ascontiguousarray(pts3d), kp2d_np, np.ascontiguousarray(Ks[idx]), weights)
+            est = self.pnp.solve_batch(np.ascontiguousarray(pts3d), kp2d_np, Kn, weights)
             t_kpd += tb - ta
             t_pnp += time.perf_counter() - tb
             if it < self.refine_boxes:
                 boxes_np = self._boxes_from_poses(est, obj_ids, img_idx, Ks, boxes_np, x.shape[1:3])
-        t3 = time.perf_counter()
-        pose_records(est, boxes, x.shape[1:3], img_idx, obj_ids, scores, kp2d_np, conf_np, used, out)
-        self.last_timings = {"detect": t1 - t0, "kpd": t_kpd, "pnp": t_pnp, "total": t3 - t0}
+        pose_records(est, boxes, x.shape[1:3], img_idx, obj_ids, scores, kp2d_np, conf_np, used, out,
+                     points_3d=pts3d, K=Kn, min_confidence=self.min_confidence,
+                     residual_scale_px=self.residual_scale_px)
+        self.last_timings = {"detect": 0.0, "kpd": t_kpd, "pnp": t_pnp, "total": t_kpd + t_pnp}
         return out
 
     def _boxes_from_poses(self, est, obj_ids, img_idx, Ks, boxes, hw) -> np.ndarray:

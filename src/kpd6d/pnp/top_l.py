@@ -75,12 +75,21 @@ def solve_top_l(solver, keypoints_3d, keypoints_2d, K, confidences, l: int | Non
     return solver.solve_batch(np.ascontiguousarray(p3), p2, np.ascontiguousarray(Ks), weights)
 
 
-def pose_records(est, boxes, image_hw, img_idx, obj_ids, scores, keypoints_2d, confidences, used, out) -> None:
+def pose_records(est, boxes, image_hw, img_idx, obj_ids, scores, keypoints_2d, confidences, used, out, *,
+                 points_3d, K, min_confidence: float = 0.0, residual_scale_px: float | None = None) -> None:
     """Append one pose dict per instance to ``out[image]`` (the pipelines' output records): ``obj_id``,
-    ``R``, ``t``, ``score``, ``keypoints_2d``, ``confidences``, ``used``, ``box``, ``ok``, ``reason``
-    from the batched PnP result ``est``. A degenerate detector box (:func:`kpd6d.geometry.box_problem`
-    in an image of ``image_hw`` = (H, W)) never gives an ok pose: its R, t become NaN with the reason."""
+    ``R``, ``t``, ``score``, ``keypoints_2d``, ``confidences``, ``used``, ``box``, ``ok``, ``reason``,
+    ``confidence`` and ``residual_px`` from the batched PnP result ``est``.
+
+    ``points_3d`` (N, k, 3) and ``K`` (N, 3, 3) are the instances' 3D keypoints and cameras:
+    ``residual_px`` is the mean reprojection error of the PnP inliers among the used keypoints and
+    ``confidence`` the pose confidence of :mod:`kpd6d.pnp.confidence` (``residual_scale_px``, None:
+    its default). ``ok`` = PnP ok and ``confidence >= min_confidence``; a pose failing only the
+    confidence gate gets NaN R, t too, with the reason. A degenerate detector box
+    (:func:`kpd6d.geometry.box_problem` in an image of ``image_hw`` = (H, W)) never gives an ok pose:
+    its R, t become NaN with the reason."""
     from kpd6d.geometry import box_problem
+    from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX, pose_confidence, reprojection_residuals
 
     R, t, ok = np.array(est.R, dtype=np.float64), np.array(est.t, dtype=np.float64), np.array(est.ok, dtype=bool)
     reasons = list(est.reasons)
@@ -89,9 +98,19 @@ def pose_records(est, boxes, image_hw, img_idx, obj_ids, scores, keypoints_2d, c
         why = box_problem(box, W, H)
         if why:
             R[n], t[n], ok[n], reasons[n] = np.nan, np.nan, False, why
+    used = np.asarray(used, dtype=bool)
+    inliers = np.asarray(est.inliers, dtype=bool) & used
+    residual = reprojection_residuals(points_3d, keypoints_2d, K, R, t, inliers)
+    conf = pose_confidence(confidences, used, inliers, residual, ok,
+                           RESIDUAL_SCALE_PX if residual_scale_px is None else float(residual_scale_px))
+    for n in range(len(boxes)):
+        if ok[n] and not conf[n] >= min_confidence:
+            R[n], t[n], ok[n] = np.nan, np.nan, False
+            reasons[n] = f"pose confidence {conf[n]:.3g} is below min_confidence={min_confidence:g}"
     for n, b in enumerate(img_idx):
         out[b].append({
             "obj_id": obj_ids[n], "R": R[n], "t": t[n], "score": scores[n],
             "keypoints_2d": keypoints_2d[n], "confidences": confidences[n], "used": used[n],
             "box": np.asarray(boxes[n]), "ok": bool(ok[n]), "reason": reasons[n],
+            "confidence": float(conf[n]), "residual_px": float(residual[n]),
         })

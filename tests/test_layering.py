@@ -11,7 +11,7 @@ Layers, lowest first (a "unit" is a top-level module ``kpd6d/X.py`` or a subpack
     L4  data, synth                              BOP datasets; the generator that writes them
     L5  evaluation, detection, kpd               metrics; the two trained stages
     L6  deploy                                   ONNX export of the stages; the torch-free runtime
-    L7  pipeline, predict, benchmarks, workflow  stages put together
+    L7  pipeline, predict, benchmarks, workflow, tracking   stages put together
     L8  cli                                      Hydra entry points, imported by no library code
 
 Rules:
@@ -21,7 +21,8 @@ Rules:
   ``config -> io`` (``to_plain`` lives with the file writers), ``paths -> config`` (the old home of
   ``config_dir``, a re-export, see ``MOVED``), ``synth -> data`` (the generator writes
   BOP files), ``kpd -> evaluation`` (the KPD's validation pose metrics), ``workflow -> pipeline``
-  (``run_evaluation`` builds the pose pipeline), ``predict -> pipeline`` (prediction on images runs it);
+  (``run_evaluation`` builds the pose pipeline), ``predict -> pipeline`` (prediction on images runs it),
+  ``predict -> tracking`` (``kpd6d-predict track=true`` on a video / camera runs the tracker);
 * there is no import cycle between units (checked on its own, so an allowance can never hide one);
 * nothing outside ``kpd6d/cli`` imports ``kpd6d.cli``;
 * ``kpd6d/__init__.py`` is the package's face and may re-export from any unit, but only lazily
@@ -61,11 +62,11 @@ LAYERS: list[tuple[str, ...]] = [
     ("data", "synth"),
     ("evaluation", "detection", "kpd"),
     ("deploy",),
-    ("pipeline", "predict", "benchmarks", "workflow"),
+    ("pipeline", "predict", "benchmarks", "workflow", "tracking"),
     ("cli",),
 ]
 SAME_LAYER = {("config", "io"), ("paths", "config"), ("synth", "data"), ("kpd", "evaluation"),
-              ("workflow", "pipeline"), ("predict", "pipeline")}
+              ("workflow", "pipeline"), ("predict", "pipeline"), ("predict", "tracking")}
 ROOT = ""  # the unit of kpd6d/__init__.py
 ROOT_NAMES_ALLOWED = {"__version__"}
 # old module path -> (where it moved, the names the old path still re-exports); kept because the docs

@@ -7,6 +7,14 @@ im_id = image index / frame number) and overlays (3D boxes in blue, used keypoin
 :func:`load_intrinsics` reads the camera: a BOP ``camera.json`` (fx, fy, cx, cy), or a JSON / text
 file holding a 3x3 matrix; None -> the LineMod camera. :func:`predict_from_config` does all of it
 for a composed ``conf/predict.yaml``.
+
+Every pose in ``poses.json`` holds ``confidence`` (in [0, 1], :mod:`kpd6d.pnp.confidence`) and ``ok``.
+``track`` (a dict of :class:`kpd6d.tracking.PoseTracker` options: ``detect_every``, ``lost_threshold``,
+``smoothing``, ``margin``, ``min_in_view``, ``obj_ids``) tracks the objects over the frames in order
+(a video, a camera, a folder as an image sequence): each pose then also holds ``source``
+(``detector`` / ``track``) and ``reason``, each frame ``detected`` (whether the detector ran), and the
+summary ``detector_calls``. ``input`` may be a camera index (``0``: ``cv2.VideoCapture(0)``), read until
+it stops or ``max_frames``.
 """
 
 from __future__ import annotations
@@ -25,10 +33,66 @@ from kpd6d.geometry import LINEMOD_K
 from kpd6d.io import atomic_write_image, atomic_write_text
 from kpd6d.visualize import draw_predictions
 
-__all__ = ["IMAGE_EXTS", "VIDEO_EXTS", "corners_from_kpd", "load_intrinsics", "predict_from_config", "predict_inputs"]
+__all__ = ["IMAGE_EXTS", "TRACK_OPTIONS", "VIDEO_EXTS", "corners_from_kpd", "expand_track_override", "is_camera",
+           "load_intrinsics", "predict_from_config", "predict_inputs", "track_options"]
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
+TRACK_OPTIONS = ("detect_every", "lost_threshold", "smoothing", "margin", "min_in_view", "obj_ids")
+_BOOLS = {"true": "true", "false": "false", "1": "true", "0": "false", "yes": "true", "no": "false", "on": "true",
+          "off": "false"}
+
+
+def is_camera(source) -> bool:
+    """Whether ``input`` names a camera: a non-negative integer (``0``, or ``"1"`` when no such file exists),
+    read with cv2.VideoCapture(int)."""
+    if isinstance(source, bool):
+        return False
+    if isinstance(source, int):
+        return source >= 0
+    return isinstance(source, str) and source.isdigit() and not os.path.exists(source)
+
+
+def expand_track_override(args: list[str]) -> list[str]:
+    """Command-line overrides with ``track=true|false`` spelled ``track.enabled=...``: ``track`` is a
+    settings node (``track.detect_every=5`` ...), which Hydra would replace by the bare boolean."""
+    out = []
+    for a in args:
+        key, eq, val = str(a).partition("=")
+        if eq and key == "track" and val.strip().lower() in _BOOLS:
+            a = f"track.enabled={_BOOLS[val.strip().lower()]}"
+        out.append(a)
+    return out
+
+
+def track_options(node) -> dict | None:
+    """The :class:`kpd6d.tracking.PoseTracker` options of a config's ``track`` node (None: no tracking).
+    ``track`` may be a bool or a dict with ``enabled`` and the options; unknown keys raise ``ValueError``."""
+    if node is None or node is False:
+        return None
+    if node is True:
+        return {}
+    if hasattr(node, "items"):
+        d = {str(k): v for k, v in node.items()}
+        if not bool(d.pop("enabled", True)):
+            return None
+        unknown = sorted(set(d) - set(TRACK_OPTIONS))
+        if unknown:
+            raise ValueError(f"track.{unknown[0]}: unknown tracking setting; known: enabled, {', '.join(TRACK_OPTIONS)}")
+        out = {k: v for k, v in d.items() if v is not None}
+        if "obj_ids" in out:
+            out["obj_ids"] = [int(o) for o in out["obj_ids"]]
+        for k in ("detect_every",):
+            if k in out:
+                out[k] = to_int(out[k], f"track.{k}")
+        for k in ("lost_threshold", "smoothing", "margin", "min_in_view"):
+            if k in out:
+                try:
+                    out[k] = float(out[k])
+                except (TypeError, ValueError):
+                    raise ValueError(f"track.{k} must be a number, got {out[k]!r}") from None
+        return out
+    raise ValueError(f"track must be true/false or a dict of tracking settings, got {node!r}")
 
 
 def load_intrinsics(path: str | os.PathLike | None) -> np.ndarray:
@@ -79,9 +143,13 @@ def _try_read(path: Path):
         return None, str(exc)
 
 
-def _frames(source: Path, batch_size: int):
+def _frames(source, batch_size: int, max_frames: int | None = None):
     """Yield (kind, [(index, name, rgb)], fps, [(index, name, error)]) batches from an image, a folder of
-    images or a video; unreadable images of a folder come in the error list."""
+    images, a video or a camera index; unreadable images of a folder come in the error list."""
+    if is_camera(source):
+        yield from _video_frames(cv2.VideoCapture(int(source)), f"camera {int(source)}", batch_size, max_frames)
+        return
+    source = Path(source)
     if source.is_dir():
         files = sorted(p for p in source.iterdir() if p.suffix.lower() in IMAGE_EXTS)
         if not files:
@@ -91,12 +159,20 @@ def _frames(source: Path, batch_size: int):
             yield ("images", [(k, n, im) for k, n, im, err in read if err is None], None,
                    [(k, n, err) for k, n, im, err in read if err is not None])
     elif source.suffix.lower() in VIDEO_EXTS:
-        cap = cv2.VideoCapture(str(source))
-        if not cap.isOpened():
-            raise ValueError(f"input={str(source)!r}: cannot open the video")
-        fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
-        idx, batch = 0, []
-        while True:
+        yield from _video_frames(cv2.VideoCapture(str(source)), f"input={str(source)!r}", batch_size, max_frames)
+    elif source.is_file():
+        yield "images", [(0, source.name, _read_rgb(source))], None, []
+    else:
+        raise FileNotFoundError(f"input={str(source)!r} does not exist")
+
+
+def _video_frames(cap, what: str, batch_size: int, max_frames: int | None):
+    if not cap.isOpened():
+        raise ValueError(f"{what}: cannot open the video")
+    fps = cap.get(cv2.CAP_PROP_FPS) or 25.0
+    idx, batch = 0, []
+    try:
+        while max_frames is None or idx < max_frames:
             ok, frame = cap.read()
             if not ok:
                 break
@@ -105,63 +181,89 @@ def _frames(source: Path, batch_size: int):
             if len(batch) == batch_size:
                 yield "video", batch, fps, []
                 batch = []
+    finally:
         cap.release()
-        if batch:
-            yield "video", batch, fps, []
-        if idx == 0:
-            raise ValueError(f"input={str(source)!r}: the video has no readable frames")
-    elif source.is_file():
-        yield "images", [(0, source.name, _read_rgb(source))], None, []
-    else:
-        raise FileNotFoundError(f"input={str(source)!r} does not exist")
+    if batch:
+        yield "video", batch, fps, []
+    if idx == 0:
+        raise ValueError(f"{what}: the video has no readable frames")
 
 
-def _count(source: Path) -> int | None:
+def _count(source, max_frames: int | None = None) -> int | None:
+    if is_camera(source):
+        return max_frames
+    source = Path(source)
     if source.is_dir():
         return sum(1 for p in source.iterdir() if p.suffix.lower() in IMAGE_EXTS)
     if source.suffix.lower() in VIDEO_EXTS:
         cap = cv2.VideoCapture(str(source))
         n = int(cap.get(cv2.CAP_PROP_FRAME_COUNT)) if cap.isOpened() else 0
         cap.release()
-        return n or None
+        n = n or None
+        return n if max_frames is None or n is None else min(n, max_frames)
     return 1
 
 
-def predict_inputs(pipeline, source: str | os.PathLike, K: np.ndarray, out_dir: str | os.PathLike,
+def _pose_entry(p: dict) -> dict:
+    e = {"obj_id": int(p["obj_id"]), "score": float(p["score"]), "ok": bool(p["ok"]),
+         "confidence": float(p.get("confidence", float("nan"))),
+         "R": np.asarray(p["R"]).tolist(), "t": np.asarray(p["t"]).tolist(), "box": np.asarray(p["box"]).tolist()}
+    if "source" in p:
+        e["source"] = p["source"]
+    if "reason" in p:
+        e["reason"] = str(p["reason"])
+    return e
+
+
+def predict_inputs(pipeline, source: str | os.PathLike | int, K: np.ndarray, out_dir: str | os.PathLike,
                    corners: dict[int, np.ndarray], batch_size: int = 4, overlays: bool = True,
-                   progress: bool = True, stop_on_error: bool = False) -> dict:
-    """Run ``pipeline`` on an image / folder / video and write poses.json, poses.csv and overlays to ``out_dir``.
+                   progress: bool = True, stop_on_error: bool = False, track: dict | None = None,
+                   max_frames: int | None = None) -> dict:
+    """Run ``pipeline`` on an image / folder / video / camera index and write poses.json, poses.csv and
+    overlays to ``out_dir``.
 
     An unreadable image of a folder is recorded (``poses.json`` ``"errors"``: index, name, why) and
     skipped, unless ``stop_on_error``; whatever was computed is written even when the run stops on an
-    error. The returned ``"errors"`` lists the failures (the CLI then exits with status 1)."""
+    error. The returned ``"errors"`` lists the failures (the CLI then exits with status 1).
+    ``track``: :class:`kpd6d.tracking.PoseTracker` options (None: every frame on its own with
+    ``predict_batch``): the frames are tracked one by one in order. ``max_frames``: stop a video or
+    camera after that many frames."""
     from tqdm import tqdm
 
     from kpd6d.evaluation.results_io import PoseResult, write_bop_results
 
-    source, out_dir = Path(source), Path(out_dir)
+    camera = is_camera(source)
+    source = int(source) if camera else Path(source)
+    out_dir = Path(out_dir)
     out_dir.mkdir(parents=True, exist_ok=True)
+    tracker = None
+    if track is not None:
+        from kpd6d.tracking import PoseTracker
+
+        tracker = PoseTracker(pipeline, **track)
     entries, results, errors = [], [], []
     writer, video_tmp, video_path = None, None, out_dir / "overlay.mp4"
     try:
-        with tqdm(total=_count(source), desc="predict", unit="frame", disable=not progress) as bar:
-            for kind, batch, fps, bad in _frames(source, max(1, int(batch_size))):
+        with tqdm(total=_count(source, max_frames), desc="predict", unit="frame", disable=not progress) as bar:
+            for kind, batch, fps, bad in _frames(source, max(1, int(batch_size)), max_frames):
                 for idx, name, why in bad:
                     errors.append({"index": idx, "name": name, "error": why})
                     if stop_on_error:
                         raise ValueError(f"input={str(source)!r}: {why}")
                 bar.update(len(bad))
                 sizes = {im.shape for _, _, im in batch}
-                groups = [batch] if len(sizes) == 1 else [[b] for b in batch]
+                groups = [batch] if len(sizes) == 1 and tracker is None else [[b] for b in batch]
                 for g in groups:
                     t0 = time.perf_counter()
-                    preds = pipeline.predict_batch([im for _, _, im in g], K)
+                    if tracker is None:
+                        preds, extra = pipeline.predict_batch([im for _, _, im in g], K), [{}] * len(g)
+                    else:
+                        res = tracker.update(g[0][2], K)
+                        preds, extra = [res["poses"]], [{"detected": res["detected"]}]
                     dt = (time.perf_counter() - t0) / len(g)
-                    for (idx, name, im), ps in zip(g, preds):
-                        entries.append({"index": idx, "name": name, "time": dt, "poses": [
-                            {"obj_id": int(p["obj_id"]), "score": float(p["score"]), "ok": bool(p["ok"]),
-                             "R": np.asarray(p["R"]).tolist(), "t": np.asarray(p["t"]).tolist(),
-                             "box": np.asarray(p["box"]).tolist()} for p in ps]})
+                    for (idx, name, im), ps, ex in zip(g, preds, extra):
+                        entries.append({"index": idx, "name": name, "time": dt, **ex,
+                                        "poses": [_pose_entry(p) for p in ps]})
                         results += [PoseResult(0, idx, p["obj_id"], p["score"], p["R"], p["t"], dt) for p in ps if p["ok"]]
                         if overlays:
                             ov = draw_predictions(im, K, ps, corners)
@@ -185,10 +287,15 @@ def predict_inputs(pipeline, source: str | os.PathLike, K: np.ndarray, out_dir: 
         if video_tmp and os.path.exists(video_tmp):
             os.unlink(video_tmp)
         # everything computed so far, also when an error stops the run
-        atomic_write_text(out_dir / "poses.json", json.dumps({"K": K.tolist(), "frames": entries, "errors": errors},
-                                                             indent=1))
+        summary = {"K": K.tolist(), "frames": entries, "errors": errors}
+        if tracker is not None:
+            summary["tracking"] = {**track, **tracker.stats}
+        atomic_write_text(out_dir / "poses.json", json.dumps(summary, indent=1))
         write_bop_results(out_dir / "poses.csv", results)
-    return {"frames": len(entries), "poses": len(results), "out_dir": str(out_dir), "errors": errors}
+    info = {"frames": len(entries), "poses": len(results), "out_dir": str(out_dir), "errors": errors}
+    if tracker is not None:
+        info["detector_calls"] = tracker.stats["detector_calls"]
+    return info
 
 
 def corners_from_kpd(kpd) -> dict[int, np.ndarray]:
@@ -219,7 +326,9 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
                                     kpd_ckpt=OmegaConf.select(cfg, "kpd_ckpt", default=None, throw_on_missing=torch_backend),
                                     export_dir=cfg.get("export_dir"), pnp=OmegaConf.to_container(cfg.pnp, resolve=True),
                                     top_l=cfg.select.top_l, refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
-                                    device=cfg.device)
+                                    min_confidence=float(cfg.get("min_confidence", 0.0) or 0.0), device=cfg.device)
+    max_frames = cfg.get("max_frames")
     return predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=cfg_int(cfg, "batch_size"),
                           overlays=bool(cfg.overlays), progress=bool(cfg.progress),
-                          stop_on_error=bool(cfg.get("stop_on_error", False)))
+                          stop_on_error=bool(cfg.get("stop_on_error", False)), track=track_options(cfg.get("track")),
+                          max_frames=None if max_frames is None else to_int(max_frames, "max_frames"))

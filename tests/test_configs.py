@@ -87,3 +87,35 @@ def test_unknown_group_option_is_a_clear_error():
         with pytest.raises(MissingConfigException) as exc:
             compose(config_name="train", overrides=["stage=nonexistent"])
     assert "nonexistent" in str(exc.value) and "kpd" in str(exc.value)
+
+
+def test_one_pnp_setting_and_one_fallback_dataset_per_tool():
+    """kpd6d-run: the KPD's validation PnP and top-l are the run's ``pnp`` and ``select.top_l`` (for
+    every experiment); kpd6d-train: the PnP is the pnp group at ``stage.kpd.pnp`` and the fallback
+    dataset is ``data.generate`` for both stages; the old ``generate`` spellings name the new one."""
+    from hydra import compose, initialize_config_dir
+
+    from kpd6d.config import check_stage_config, renamed_overrides
+
+    with initialize_config_dir(config_dir=str(CONF), version_base="1.3"):
+        for exp in sorted(p.stem for p in (CONF / "experiment").glob("*.yaml")):
+            cfg = compose(config_name="run", overrides=[f"experiment={exp}", "objects.models_dir=m",
+                                                        "evaluate.data_root=d", "pnp=epnp", "select.top_l=7"])
+            kpd = OmegaConf.to_container(cfg.kpd_stage.kpd, resolve=True)
+            assert kpd["pnp"] == OmegaConf.to_container(cfg.pnp, resolve=True) and kpd["top_l"] == 7, exp
+        cfg = compose(config_name="train", overrides=["stage=kpd", "pnp@stage.kpd.pnp=epnp_ransac"])
+        assert cfg.stage.kpd.pnp.name == "epnp_ransac" and "generate" not in cfg.stage.kpd
+        assert cfg.data.generate.num_train > 0
+        assert "generate" not in compose(config_name="train", overrides=["stage=detector"]).stage
+    assert renamed_overrides(["stage.kpd.generate.num_train=5", "stage.generate.obj_ids=[1]"]) == [
+        "stage.kpd.generate is now data.generate (kpd6d-train; kpd6d-run: data.num_train, data.options, ...)",
+        "stage.generate is now data.generate (kpd6d-train; kpd6d-run: data.num_train, data.options, ...)"]
+    with pytest.raises(ValueError, match="data.generate"):
+        check_stage_config(OmegaConf.create({"kpd": {"generate": {"num_train": 3}}}))
+
+
+def test_no_data_and_no_generate_node_is_a_clear_error(tmp_path):
+    from kpd6d.synth.prepare import prepare_data
+
+    with pytest.raises(ValueError, match="data.generate"):
+        prepare_data(None, tmp_path, None, ["train", "val"])

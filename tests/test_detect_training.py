@@ -263,11 +263,10 @@ def test_prepare_data_generates_a_procedural_dataset_when_root_is_null(tmp_path)
 
     cfg = OmegaConf.create({
         "data": {"root": None, "train_split": "train", "val_split": "val"},
-        "stage": {"generate": {"obj_ids": [1, 2, 3], "num_train": 2, "num_val": 1, "seed": 1, "workers": 1,
-                               "options": {"width": 64, "height": 48, "objects_per_image": [2, 3],
-                                           "designator": None}}},
+        "generate": {"obj_ids": [1, 2, 3], "num_train": 2, "num_val": 1, "seed": 1, "workers": 1,
+                     "options": {"width": 64, "height": 48, "objects_per_image": [2, 3], "designator": None}},
     })
-    root = prepare_data(cfg.data.root, tmp_path, cfg.stage.generate, [cfg.data.train_split, cfg.data.val_split])
+    root = prepare_data(cfg.data.root, tmp_path, cfg.generate, [cfg.data.train_split, cfg.data.val_split])
     assert root == tmp_path / "data"
     train = DetectionDataset(root, "train", input_size=None, min_visib_fract=0.0)
     val = DetectionDataset(root, "val", input_size=None, min_visib_fract=0.0)
@@ -277,4 +276,4 @@ def test_prepare_data_generates_a_procedural_dataset_when_root_is_null(tmp_path)
     assert img.shape == (3, 48, 64) and len(t["obj_ids"]) >= 1
     cfg.data.root = str(tmp_path / "missing")
     with pytest.raises(FileNotFoundError, match="missing"):
-        prepare_data(cfg.data.root, tmp_path, cfg.stage.generate, [cfg.data.train_split, cfg.data.val_split])
+        prepare_data(cfg.data.root, tmp_path, cfg.generate, [cfg.data.train_split, cfg.data.val_split])

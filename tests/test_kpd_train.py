@@ -15,7 +15,7 @@ def _cfg(tmp_path, *extra):
         cfg = compose("train", overrides=[
             "stage=kpd", "backbone@stage.backbone=tiny", "stage.kpd.head.deconv_channels=16",
             "stage.kpd.codec.input_size=64", "stage.kpd.batch_size=4", "stage.kpd.num_workers=0",
-            "stage.kpd.generate.num_train=6", "stage.kpd.generate.num_val=3", "stage.kpd.generate.obj_ids=[2]",
+            "data.generate.num_train=6", "data.generate.num_val=3", "data.generate.obj_ids=[2]",
             "stage.kpd.trainer.max_epochs=1", "stage.kpd.trainer.accelerator=cpu", "stage.kpd.trainer.devices=1",
             "stage.kpd.trainer.log_every_n_steps=1", f"+run_dir={tmp_path}", *extra,
         ])

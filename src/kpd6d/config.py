@@ -134,6 +134,9 @@ RENAMED_STAGE_KEYS = {
     "kpd.sigma": "{stage}.kpd.codec.sigma",
     "kpd.crop_scale": "{stage}.kpd.codec.crop_scale",
     "decoder": "{stage}.kpd.codec.decoder (decoder@{stage}.kpd.codec.decoder=NAME)",
+    # one fallback dataset for kpd6d-train, beside data.root
+    "generate": "data.generate (kpd6d-train; kpd6d-run: data.num_train, data.options, ...)",
+    "kpd.generate": "data.generate (kpd6d-train; kpd6d-run: data.num_train, data.options, ...)",
 }
 _STAGE_NODES = ("stage", "detector_stage", "kpd_stage")
 

@@ -53,7 +53,7 @@ def train_detector(cfg: Any) -> Path:
     run_dir.mkdir(parents=True, exist_ok=True)
     from kpd6d.synth.prepare import prepare_data
 
-    root = prepare_data(cfg.data.root, run_dir, to_plain(st.generate), [cfg.data.train_split, cfg.data.val_split])
+    root = prepare_data(cfg.data.root, run_dir, to_plain(cfg.data.get("generate")), [cfg.data.train_split, cfg.data.val_split])
     common = dict(box=st.box, min_visib_fract=float(st.min_visib_fract), input_size=det_cfg.get("input_size"))
     stage_ids = to_plain(st.obj_ids)
     train_ds = DetectionDataset(root, cfg.data.train_split, obj_ids=stage_ids, **common)

@@ -76,7 +76,7 @@ def train_kpd(cfg) -> Path:
     seed_and_threads(cfg.seed, k.get("num_threads"))
     from kpd6d.synth.prepare import prepare_data
 
-    root = prepare_data(cfg.data.root, run_dir, to_plain(k.generate), [cfg.data.train_split, cfg.data.val_split])
+    root = prepare_data(cfg.data.root, run_dir, to_plain(cfg.data.get("generate")), [cfg.data.train_split, cfg.data.val_split])
     train_ds, val_ds = build_datasets(cfg, root)
 
     module = KPDModule.from_models(

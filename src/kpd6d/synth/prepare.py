@@ -38,13 +38,17 @@ def generate_splits(root: str | Path, splits: Sequence[tuple[str, int, int]], *,
 def prepare_data(data_root: str | None, run_dir: str | Path, generate: Mapping[str, Any],
                  splits: Sequence[str | None]) -> Path:
     """``data_root`` when given (it must exist), else the ``splits`` (train first, then val) generated
-    into ``<run_dir>/data`` from a stage's ``generate`` node (``obj_ids``, ``num_train``, ``num_val``,
-    ``seed`` (split i gets ``seed + 1000 i``), ``workers`` and optional ``options``)."""
+    into ``<run_dir>/data`` from a ``generate`` node (kpd6d-train's ``data.generate``: ``obj_ids``,
+    ``num_train``, ``num_val``, ``seed`` (split i gets ``seed + 1000 i``), ``workers`` and optional
+    ``options``)."""
     if data_root:
         root = Path(data_root)
         if not root.is_dir():
             raise FileNotFoundError(f"data.root {str(root)!r} does not exist (set data.root=null to generate one)")
         return root
+    if not generate:
+        raise ValueError("data.root is null and there is no data.generate node to generate a dataset from: "
+                         "set data.root=<BOP dataset> or give data.generate (conf/train.yaml)")
     g = generate
     counts = (g["num_train"], g["num_val"])
     seed = int(g["seed"])

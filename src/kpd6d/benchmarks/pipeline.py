@@ -12,6 +12,8 @@ the full images). Configurations:
   CenterNet resnet18 (32 ch) at 320x240), 50 keypoints, EPnP on the top-10.
 * ``demo_lite0``: the same on EfficientNet-Lite0 (the ImageNet-pretrained backbone the demo uses now)
   in both stages.
+* ``lmo``: the LM-O recipe's networks (``experiment=lmo``): KPD EfficientNet-Lite0 + FPN head (64 ch),
+  96x96 crops; CenterNet EfficientNet-Lite0 (32 ch) at 320x240; use ``--objects 8``.
 * ``tiny``: a few-layer KPD (64x64 crops) and an 8-channel CenterNet at 128x96, for smoke tests.
 
 Each batch size is timed ``--repeats`` times after ``--warmup`` runs; the median is reported.
@@ -21,6 +23,11 @@ End-to-end = the sum of the stages (the same work ``PosePipeline.predict_batch``
 :mod:`kpd6d.deploy.export`) and run by the torch-free runtime (:mod:`kpd6d.deploy.runtime`: numpy
 crops, decoding and detector post-processing), reported side by side with the speed-up over eager
 torch (``x torch``: fps / torch's fps for the same config and batch).
+
+Arithmetic (:mod:`kpd6d.benchmarks.flops`): each torch row also gives the GFLOP per image of the
+detector and of the KPD (counted by PyTorch's FlopCounterMode: convolutions and matrix products)
+and the GFLOP/s each reached, next to the machine's measured float32 matmul peak (printed above the
+table), so the distance to the machine's limit is visible.
 """
 
 from __future__ import annotations
@@ -47,6 +54,12 @@ CONFIGS = {
     "demo_lite0": {"backbone": {"name": "efficientnet_lite0", "pretrained": None},
                    "head": {"name": "fpn", "fpn_channels": 64}, "input_size": 96,
                    "detector": {"name": "centernet", "backbone": "efficientnet_lite0", "input_size": [320, 240]}},
+    # the LM-O recipe's networks (experiment=lmo: conf/kpd/cpu_pretrained.yaml, conf/detector/centernet_lite0.yaml);
+    # run it with --objects 8 (the 8 LM-O objects per image)
+    "lmo": {"backbone": {"name": "efficientnet_lite0", "pretrained": None},
+            "head": {"name": "fpn", "fpn_channels": 64}, "input_size": 96,
+            "detector": {"name": "centernet", "backbone": "efficientnet_lite0", "neck_channels": 32,
+                         "head_channels": 32, "input_size": [320, 240]}},
     # smoke tests of the benchmark itself (not a model anyone deploys)
     "tiny": {"backbone": {"name": "tiny", "width": 8}, "head": {"name": "deconv", "deconv_channels": 16},
              "input_size": 64, "detector": {"name": "centernet", "backbone": "resnet10t", "neck_channels": 8,
@@ -142,6 +155,17 @@ def _runtime(det, kpd, backend: str, threads: int | None):
         return RuntimeDetector(d, dnode, backend, threads), RuntimeKPD(d, knode, backend, threads)
 
 
+def network_flops(det, kpd, images, boxes, image_index, obj_ids) -> tuple[int, int]:
+    """(detector FLOPs, KPD FLOPs) of one batch: ``det.predict`` on the full images (resizing and
+    decoding count nothing: only convolutions and matrix products are counted) and the KPD on the
+    batch's crops."""
+    from kpd6d.benchmarks.flops import count_flops
+    from kpd6d.kpd.crops import inference_crops
+
+    crops, _ = inference_crops(images, boxes, image_index, kpd.codec)
+    return count_flops(det.predict, images), count_flops(kpd, crops, kpd.obj_indices(obj_ids))
+
+
 def run(config: str, batch_sizes, num_objects: int, num_keypoints: int, top_l: int, repeats: int, warmup: int,
         device, backends=("torch",), threads: int | None = None) -> list[dict]:
     from kpd6d.geometry import LINEMOD_K
@@ -164,6 +188,7 @@ def run(config: str, batch_sizes, num_objects: int, num_keypoints: int, top_l: i
         obj_ids = torch.arange(1, num_objects + 1).repeat(B).to(device)
         K = np.broadcast_to(LINEMOD_K, (B * num_objects, 3, 3))
         torch_fps = None
+        det_flops, kpd_flops = network_flops(det, kpd, images, boxes, image_index, obj_ids)
         for backend in backends:
             runs = []
             if backend != "torch":
@@ -185,6 +210,9 @@ def run(config: str, batch_sizes, num_objects: int, num_keypoints: int, top_l: i
                    "total_ms_per_image": 1000 * total / B, "fps": B / total}
             if backend == "torch":
                 torch_fps = row["fps"]
+                row.update(detect_gflop_per_image=det_flops / B / 1e9, kpd_gflop_per_image=kpd_flops / B / 1e9,
+                           detect_gflops=det_flops / 1e9 / max(med["detect"], 1e-12),
+                           kpd_gflops=kpd_flops / 1e9 / max(med["kpd"], 1e-12))
             if tuple(backends) != ("torch",):
                 row["backend"] = backend
                 row["vs_torch"] = None if torch_fps is None else row["fps"] / torch_fps
@@ -195,14 +223,18 @@ def run(config: str, batch_sizes, num_objects: int, num_keypoints: int, top_l: i
 def format_table(rows: list[dict]) -> str:
     multi = any("backend" in r for r in rows)  # --backends: a backend column and the ratio to eager torch
     head = ("| config | " + ("backend | " if multi else "") + "device | batch | objects/img | "
-            + " | ".join(f"{s} ms" for s in STAGES) + " | total ms | fps |" + (" x torch |" if multi else ""))
-    lines = [head, "|" + "---|" * (len(STAGES) + 6 + 2 * multi)]
+            + " | ".join(f"{s} ms" for s in STAGES) + " | total ms | fps |" + (" x torch |" if multi else "")
+            + " det GFLOP/img | det GFLOP/s | KPD GFLOP/img | KPD GFLOP/s |")
+    lines = [head, "|" + "---|" * (len(STAGES) + 10 + 2 * multi)]
     for r in rows:
         ratio = "" if not multi else (" - |" if r.get("vs_torch") is None else f" {r['vs_torch']:.2f} |")
         lines.append(f"| {r['config']} | " + (f"{r['backend']} | " if multi else "")
                      + f"{r['device']} | {r['batch']} | {r['objects_per_image']} | "
                      + " | ".join(f"{r[f'{s}_ms_per_image']:.1f}" for s in STAGES)
-                     + f" | {r['total_ms_per_image']:.1f} | {r['fps']:.2f} |" + ratio)
+                     + f" | {r['total_ms_per_image']:.1f} | {r['fps']:.2f} |" + ratio
+                     + ("".join(f" {r[k]:.3g} |" for k in ("detect_gflop_per_image", "detect_gflops",
+                                                            "kpd_gflop_per_image", "kpd_gflops"))
+                        if "kpd_gflops" in r else " - | - | - | - |"))
     return "\n".join(lines)
 
 
@@ -243,6 +275,11 @@ def main(argv: list[str] | None = None) -> int:
     dev_name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{platform.processor() or 'cpu'}, {torch.get_num_threads()} threads"
     print(f"device: {dev_name}; {args.objects} objects/image, {args.keypoints} keypoints, top-{args.top_l}, EPnP; "
           f"median of {args.repeats} runs; untrained weights")
+    if device.type == "cpu":
+        from kpd6d.benchmarks.flops import matmul_peak_gflops
+
+        print(f"machine peak (float32 1024x1024 matmul, {torch.get_num_threads()} threads): "
+              f"{matmul_peak_gflops():.1f} GFLOP/s; GFLOP counts: convolutions and matrix products")
     print(format_table(rows))
     print("paper (KPD, ResNet-101, GTX 1080 Ti): 25 fps")
     if args.json:

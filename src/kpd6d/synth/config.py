@@ -21,7 +21,8 @@ LAYOUTS = ("free", "tabletop")
 #: options of the table-top layout; with ``layout: free`` they are left out of ``to_dict`` while at
 #: their defaults, so that free-layout runs record (and resume with) the same settings as before
 _TABLETOP_FIELDS = ("layout", "table_elevation_range", "table_roll_range", "table_size_range",
-                    "table_cluster_radius", "table_distractor_rest_prob", "table_upright_prob")
+                    "table_cluster_radius", "table_distractor_rest_prob", "table_upright_prob",
+                    "table_room_prob")
 
 
 def default_K(width: int, height: int) -> np.ndarray:
@@ -76,6 +77,7 @@ class SynthConfig:
     table_cluster_radius: float = 0.15  # objects within this fraction of the camera distance of the look-at point
     table_distractor_rest_prob: float = 0.5  # chance that a distractor rests on the table (else it floats)
     table_upright_prob: float = 0.0  # chance that an object stands as modelled (model +z up) instead of a random stable pose
+    table_room_prob: float = 0.0  # chance that the table stands in a procedural room (floor, walls, posters, screens, furniture)
     # appearance
     lighting: str = "random"  # "random" (Lighting.random per image), "indoor" (Lighting.random_indoor) or "fixed"
     specular_prob: float = 0.3
@@ -176,7 +178,8 @@ class SynthConfig:
         lo, hi = self.table_size_range = _pair("table_size_range", self.table_size_range)
         if lo <= 0:
             raise ValueError(f"table_size_range must be positive (mm), got {list(self.table_size_range)}")
-        for name in ("table_cluster_radius", "table_distractor_rest_prob", "table_upright_prob"):
+        for name in ("table_cluster_radius", "table_distractor_rest_prob", "table_upright_prob",
+                    "table_room_prob"):
             try:
                 v = float(getattr(self, name))
             except (TypeError, ValueError):
@@ -189,6 +192,8 @@ class SynthConfig:
             raise ValueError(f"table_distractor_rest_prob must lie in [0, 1], got {self.table_distractor_rest_prob!r}")
         if not (0.0 <= self.table_upright_prob <= 1.0):
             raise ValueError(f"table_upright_prob must lie in [0, 1], got {self.table_upright_prob!r}")
+        if not (0.0 <= self.table_room_prob <= 1.0):
+            raise ValueError(f"table_room_prob must lie in [0, 1], got {self.table_room_prob!r}")
 
     # -- derived ---------------------------------------------------------------------------------
     def camera_K(self) -> np.ndarray:

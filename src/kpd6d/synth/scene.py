@@ -34,6 +34,7 @@ from kpd6d.geometry import bbox_from_points, project_points
 from kpd6d.synth.config import SynthConfig
 from kpd6d.synth.photometric import PhotometricConfig, apply_photometric
 from kpd6d.synth.poses import ModelGeometry, _inside, projected_box, sample_object_pose
+from kpd6d.synth.room import make_room
 from kpd6d.synth.tabletop import (
     RestingPoses,
     TableScene,
@@ -220,7 +221,16 @@ class SceneComposer:
         long = max(self.W, self.H)  # texture: the output's resolution at the table's aspect ratio
         tw, th = (long, max(8, round(long * sy / sx))) if sx >= sy else (max(8, round(long * sx / sy)), long)
         image = self.backgrounds.sample(rng, tw, th)
-        return TableScene(mesh=make_table_mesh(image, *ext), extent=tuple(ext))
+        room = ()
+        if self.cfg.table_room_prob > 0 and rng.random() < self.cfg.table_room_prob:
+            room = tuple(make_room(rng, self.backgrounds, ext, self._camera_reach()).meshes)
+        return TableScene(mesh=make_table_mesh(image, *ext), extent=tuple(ext), room=room)
+
+    def _camera_reach(self) -> float:
+        """The largest horizontal distance (mm) of a sampled camera from the look-at point, plus the
+        near plane and a margin: the room's walls stand beyond it."""
+        el_min = math.radians(self.cfg.table_elevation_range[0])
+        return self.ranges.distance[1] * math.cos(el_min) + 2.0 * self.renderer.znear + 100.0
 
     def _table_camera(self, rng, table: TableScene) -> TableScene:
         """The table with a camera looking down at its origin (elevation uniform on the sphere)."""
@@ -337,8 +347,8 @@ class SceneComposer:
         d_items = self._table_distractors(rng, chosen, poses, cam, placed)
         n = len(chosen)
         items = [(self.models[k], R, t) for k, (R, t) in zip(chosen, poses)] + d_items
-        col = self.renderer.render([*items, (table.mesh, cam.R_w2c, cam.t_w2c)], lighting=lighting, K=self.K,
-                                   masks=False)
+        scenery = [(m, cam.R_w2c, cam.t_w2c) for m in (table.mesh, *table.room)]
+        col = self.renderer.render([*items, *scenery], lighting=lighting, K=self.K, masks=False)
         if cfg.antialias:
             seg = self.renderer.render(items, K=self.K, depth_only=True)
             base = masks = seg.masks_visib[:n]
@@ -348,7 +358,7 @@ class SceneComposer:
             seg = self.renderer.render(items[:n], K=self.K, depth_only=True)
             base = seg.masks_visib
             masks = base
-            if d_items:
+            if d_items or table.room:  # occluders, or room furniture that may stand in front
                 in_front = col.depth < seg.depth * (1.0 - 1e-6) - 1e-3
                 vs, us = np.nonzero(in_front)
                 if len(us):
@@ -472,7 +482,8 @@ class SceneComposer:
                     break
         finally:
             if table is not None:
-                self._forget_mesh(table.mesh)
+                for mesh in (table.mesh, *table.room):
+                    self._forget_mesh(mesh)
         _, (rendered, depth), instances, (table_cam, d_items) = best
         # paste: the union of all rendered silhouettes (objects and occluders); feathering only
         # softens its inner edge (blends background into the outermost object pixels, no dark halo)

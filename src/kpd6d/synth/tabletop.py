@@ -296,6 +296,7 @@ class TableScene:
     t_w2c: np.ndarray | None = None
     elevation_deg: float | None = None
     distance: float | None = None
+    room: tuple = ()  # meshes of the room around the table (table frame; :mod:`kpd6d.synth.room`), drawn in colour only
 
     def world_to_camera(self, R_mw: np.ndarray, t_mw: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         return self.R_w2c @ R_mw, self.R_w2c @ t_mw + self.t_w2c

@@ -2,7 +2,6 @@
 
 from __future__ import annotations
 
-import time
 
 import numpy as np
 import pytest
@@ -80,10 +79,18 @@ def test_subset_copies_and_unknown_id():
         procedural_objects(obj_ids=[9])
 
 
-def test_fast_to_build():
-    t0 = time.perf_counter()
-    procedural_objects(seed=12345)  # not cached
-    assert (time.perf_counter() - t0) / 6 < 1.0
+def test_uncached_builds_are_deterministic():
+    """A seed built from scratch twice gives the same meshes (its build time is a benchmark figure,
+    not a test: kpd6d-benchmark designate)."""
+    from kpd6d.objects.procedural import _build_cached
+
+    a = procedural_objects(seed=12345)
+    _build_cached.cache_clear()
+    b = procedural_objects(seed=12345)
+    assert [m.name for m in a] == [m.name for m in b]
+    for x, y in zip(a, b):
+        np.testing.assert_array_equal(x.mesh.vertices, y.mesh.vertices)
+        np.testing.assert_array_equal(x.mesh.faces, y.mesh.faces)
 
 
 def test_declared_symmetries(objs):

@@ -47,3 +47,21 @@ def test_pipeline_benchmark_reports_network_arithmetic(capsys):
     assert float(row[cols.index("KPD GFLOP/img")]) == pytest.approx(two[1] / 1e9, rel=0.01)
     assert float(row[cols.index("det GFLOP/s")]) > 0
     assert "lmo" in __import__("kpd6d.benchmarks.pipeline", fromlist=["CONFIGS"]).CONFIGS
+
+
+def test_tracking_fps_formula_and_table():
+    """Tracked fps = batch / (crop + kpd + decode + pnp + projection); with the detector every N-th
+    frame the per-frame time is the weighted mean of tracked and detected frames."""
+    from kpd6d.benchmarks.pipeline import format_table, projection_seconds, tracking_fps
+
+    st = {"detect": 0.030, "crop": 0.005, "kpd": 0.020, "decode": 0.003, "pnp": 0.002}
+    track, mixed = tracking_fps(st, 0.001, 1, 10)
+    assert track == pytest.approx(1 / 0.031)
+    assert mixed == pytest.approx(1 / (0.9 * 0.031 + 0.1 * 0.061))
+    assert tracking_fps(st, 0.001, 1, 1)[1] == pytest.approx(1 / 0.061)  # N=1: detect every frame
+    assert 0 < projection_seconds(8, repeats=2) < 1.0
+    row = {"config": "x", "batch": 1, "objects_per_image": 8, "device": "cpu",
+           **{f"{s}_ms_per_image": 1000 * v for s, v in st.items()}, "total_ms_per_image": 60.0,
+           "fps": 1 / 0.06, "track_fps": track, "track_detect_every_fps": mixed, "detect_every": 10}
+    out = format_table([row])
+    assert "tracked fps" in out and f"{track:.2f} | {mixed:.2f} (N=10) |" in out

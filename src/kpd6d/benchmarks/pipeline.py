@@ -24,6 +24,13 @@ End-to-end = the sum of the stages (the same work ``PosePipeline.predict_batch``
 crops, decoding and detector post-processing), reported side by side with the speed-up over eager
 torch (``x torch``: fps / torch's fps for the same config and batch).
 
+Tracking (:mod:`kpd6d.tracking`): a tracked frame skips the detector and crops on the boxes of the
+previous frame's poses projected with K, so its cost is the crop, KPD, decode and PnP stages plus the
+box projection (timed here, per object, with the tracker's own ``projected_box``). Each row gives the
+steady-state tracked fps and, with ``--detect-every N`` (default 10), the fps when the detector also
+runs on every N-th frame: ``1 / ((N - 1) / N * track + 1 / N * (track + detect))`` per frame. The
+detect-every-frame figure is the row's ``fps``.
+
 Arithmetic (:mod:`kpd6d.benchmarks.flops`): each torch row also gives the GFLOP per image of the
 detector and of the KPD (counted by PyTorch's FlopCounterMode: convolutions and matrix products)
 and the GFLOP/s each reached, next to the machine's measured float32 matmul peak (printed above the
@@ -155,6 +162,32 @@ def _runtime(det, kpd, backend: str, threads: int | None):
         return RuntimeDetector(d, dnode, backend, threads), RuntimeKPD(d, knode, backend, threads)
 
 
+def projection_seconds(num_boxes: int, repeats: int = 20) -> float:
+    """Seconds to project ``num_boxes`` objects' 3D box corners to their crop boxes (the tracker's
+    per-frame work besides the KPD and PnP), median of ``repeats``."""
+    from kpd6d.geometry import LINEMOD_K
+    from kpd6d.tracking import projected_box
+
+    corners = np.array([[x, y, z] for x in (-50, 50) for y in (-50, 50) for z in (-50, 50)], dtype=np.float64)
+    R, t = np.eye(3), np.array([10.0, -5.0, 700.0])
+    times = []
+    for _ in range(max(1, repeats)):
+        t0 = time.perf_counter()
+        for _ in range(num_boxes):
+            projected_box(corners, LINEMOD_K, R, t, (480, 640), margin=0.15)
+        times.append(time.perf_counter() - t0)
+    return statistics.median(times)
+
+
+def tracking_fps(stage_s: dict[str, float], proj_s: float, batch: int, detect_every: int) -> tuple[float, float]:
+    """(steady-state tracked fps, fps with the detector on every ``detect_every``-th frame) from a
+    batch's stage seconds and the box-projection seconds."""
+    track = sum(stage_s[s] for s in STAGES if s != "detect") + proj_s
+    n = max(1, int(detect_every))
+    mixed = (n - 1) / n * track + (track + stage_s["detect"]) / n
+    return batch / track, batch / mixed
+
+
 def network_flops(det, kpd, images, boxes, image_index, obj_ids) -> tuple[int, int]:
     """(detector FLOPs, KPD FLOPs) of one batch: ``det.predict`` on the full images (resizing and
     decoding count nothing: only convolutions and matrix products are counted) and the KPD on the
@@ -167,7 +200,7 @@ def network_flops(det, kpd, images, boxes, image_index, obj_ids) -> tuple[int, i
 
 
 def run(config: str, batch_sizes, num_objects: int, num_keypoints: int, top_l: int, repeats: int, warmup: int,
-        device, backends=("torch",), threads: int | None = None) -> list[dict]:
+        device, backends=("torch",), threads: int | None = None, detect_every: int = 10) -> list[dict]:
     from kpd6d.geometry import LINEMOD_K
     from kpd6d.registry import PNP_SOLVERS
 
@@ -189,6 +222,7 @@ def run(config: str, batch_sizes, num_objects: int, num_keypoints: int, top_l: i
         K = np.broadcast_to(LINEMOD_K, (B * num_objects, 3, 3))
         torch_fps = None
         det_flops, kpd_flops = network_flops(det, kpd, images, boxes, image_index, obj_ids)
+        proj_s = projection_seconds(B * num_objects)
         for backend in backends:
             runs = []
             if backend != "torch":
@@ -208,6 +242,8 @@ def run(config: str, batch_sizes, num_objects: int, num_keypoints: int, top_l: i
                    "device": str(device) if backend == "torch" else "cpu",
                    **{f"{s}_ms_per_image": 1000 * med[s] / B for s in STAGES},
                    "total_ms_per_image": 1000 * total / B, "fps": B / total}
+            row["track_fps"], row["track_detect_every_fps"] = tracking_fps(med, proj_s, B, detect_every)
+            row["detect_every"] = detect_every
             if backend == "torch":
                 torch_fps = row["fps"]
                 row.update(detect_gflop_per_image=det_flops / B / 1e9, kpd_gflop_per_image=kpd_flops / B / 1e9,
@@ -224,14 +260,16 @@ def format_table(rows: list[dict]) -> str:
     multi = any("backend" in r for r in rows)  # --backends: a backend column and the ratio to eager torch
     head = ("| config | " + ("backend | " if multi else "") + "device | batch | objects/img | "
             + " | ".join(f"{s} ms" for s in STAGES) + " | total ms | fps |" + (" x torch |" if multi else "")
+            + " tracked fps | tracked fps, detect every N |"
             + " det GFLOP/img | det GFLOP/s | KPD GFLOP/img | KPD GFLOP/s |")
-    lines = [head, "|" + "---|" * (len(STAGES) + 10 + 2 * multi)]
+    lines = [head, "|" + "---|" * (len(STAGES) + 12 + 2 * multi)]
     for r in rows:
         ratio = "" if not multi else (" - |" if r.get("vs_torch") is None else f" {r['vs_torch']:.2f} |")
         lines.append(f"| {r['config']} | " + (f"{r['backend']} | " if multi else "")
                      + f"{r['device']} | {r['batch']} | {r['objects_per_image']} | "
                      + " | ".join(f"{r[f'{s}_ms_per_image']:.1f}" for s in STAGES)
                      + f" | {r['total_ms_per_image']:.1f} | {r['fps']:.2f} |" + ratio
+                     + f" {r['track_fps']:.2f} | {r['track_detect_every_fps']:.2f} (N={r['detect_every']}) |"
                      + ("".join(f" {r[k]:.3g} |" for k in ("detect_gflop_per_image", "detect_gflops",
                                                             "kpd_gflop_per_image", "kpd_gflops"))
                         if "kpd_gflops" in r else " - | - | - | - |"))
@@ -249,6 +287,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--warmup", type=int, default=1)
     p.add_argument("--device", default="auto", help="auto (cuda when available), cpu or cuda")
     p.add_argument("--threads", type=int, default=None, help="torch CPU threads (default: torch's choice)")
+    p.add_argument("--detect-every", type=int, default=10,
+                   help="tracking: the detector runs on every N-th frame (the tracked-fps column with N)")
     p.add_argument("--json", default=None, help="also write the rows as JSON here")
     p.add_argument("--backends", default="torch",
                    help="comma-separated, of torch, onnxruntime, openvino (exported networks, torch-free runtime; "
@@ -271,7 +311,7 @@ def main(argv: list[str] | None = None) -> int:
     rows = []
     for c in args.configs.split(","):
         rows += run(c, sizes, args.objects, args.keypoints, args.top_l, args.repeats, args.warmup, device,
-                    backends=backends, threads=args.threads)
+                    backends=backends, threads=args.threads, detect_every=args.detect_every)
     dev_name = torch.cuda.get_device_name(device) if device.type == "cuda" else f"{platform.processor() or 'cpu'}, {torch.get_num_threads()} threads"
     print(f"device: {dev_name}; {args.objects} objects/image, {args.keypoints} keypoints, top-{args.top_l}, EPnP; "
           f"median of {args.repeats} runs; untrained weights")

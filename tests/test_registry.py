@@ -210,8 +210,16 @@ def test_broken_plugin_names_itself_and_is_retried(monkeypatch):
         reg.load_plugins()  # still loud on the next attempt
 
 
-def test_the_seven_registries_exist():
-    assert set(REGISTRIES) == {"designator", "detector", "backbone", "decoder", "codec", "pnp"}  # the conf/ groups
-    assert isinstance(SYMMETRIES, Registry)  # the seventh, without a group (handlers follow models_info)
+def test_the_nine_registries_exist():
+    assert set(REGISTRIES) == {"designator", "detector", "backbone", "head", "box_augment", "decoder", "codec",
+                               "pnp"}  # the conf/ groups
+    assert isinstance(SYMMETRIES, Registry)  # the ninth, without a group (handlers follow models_info)
+    from kpd6d.kpd.box_augment import BoxJitter
+    from kpd6d.kpd.heads import FPNHead
+    from kpd6d.registry import BOX_AUGMENTS, HEADS
+
+    assert HEADS.names() == ["deconv", "fpn"] and HEADS.get("fpn") is FPNHead
+    assert BOX_AUGMENTS.names() == ["jitter", "none", "pgpg"]
+    assert isinstance(build_from_cfg(BOX_AUGMENTS, {"name": "jitter", "shift": 0.2}), BoxJitter)
     assert REGISTRIES["pnp"] is PNP_SOLVERS
     assert {"epnp", "iterative", "sqpnp", "epnp_ransac", "dlt", "weighted_lm"} <= set(PNP_SOLVERS.names())

@@ -1,4 +1,4 @@
-"""Plugin registries: one small generic :class:`Registry` and the seven registries of the library.
+"""Plugin registries: one small generic :class:`Registry` and the nine registries of the library.
 
 A registry maps a name to a factory. ``REGISTRY.build(name, **params)`` calls the factory; an
 unknown name raises :class:`UnknownNameError` listing the known names. Each Hydra config group in
@@ -21,10 +21,12 @@ from typing import Any
 
 __all__ = [
     "BACKBONES",
+    "BOX_AUGMENTS",
     "CODECS",
     "DECODERS",
     "DESIGNATORS",
     "DETECTORS",
+    "HEADS",
     "PNP_SOLVERS",
     "REGISTRIES",
     "SYMMETRIES",
@@ -155,6 +157,8 @@ def _qualname(obj: Any) -> str:
 DESIGNATORS = Registry("designator", ("kpd6d.keypoints.designators",))
 DETECTORS = Registry("detector", ("kpd6d.detection.detectors",))
 BACKBONES = Registry("backbone", ("kpd6d.kpd.backbones",))
+HEADS = Registry("KPD head", ("kpd6d.kpd.heads",))
+BOX_AUGMENTS = Registry("box augmentation", ("kpd6d.kpd.box_augment",))
 DECODERS = Registry("decoder", ("kpd6d.kpd.decoders",))
 CODECS = Registry("codec", ("kpd6d.kpd.codec",))
 PNP_SOLVERS = Registry("PnP solver", ("kpd6d.pnp",))
@@ -166,6 +170,8 @@ REGISTRIES: dict[str, Registry] = {
     "designator": DESIGNATORS,
     "detector": DETECTORS,
     "backbone": BACKBONES,
+    "head": HEADS,
+    "box_augment": BOX_AUGMENTS,
     "decoder": DECODERS,
     "codec": CODECS,
     "pnp": PNP_SOLVERS,

@@ -16,6 +16,8 @@ from collections.abc import Mapping
 
 import numpy as np
 
+from kpd6d.registry import BOX_AUGMENTS
+
 from kpd6d.box_errors import (
     STATS_FORMAT,
     BoxErrorStatsError,
@@ -75,19 +77,19 @@ class BoxPGPG:
         return apply_offsets(box, pool[rng.integers(len(pool))])
 
 
+@BOX_AUGMENTS.register("jitter")
 def jitter(shift: float = 0.1, scale: float = 0.1) -> BoxJitter:
     return BoxJitter(shift=shift, scale=scale)
 
 
+@BOX_AUGMENTS.register("pgpg")
 def pgpg(stats: str | os.PathLike | Mapping, per_object: bool = True, min_per_object: int = 20) -> BoxPGPG:
     return BoxPGPG(stats, per_object=per_object, min_per_object=min_per_object)
 
 
+@BOX_AUGMENTS.register("none")
 def _none():
     return None
-
-
-BOX_AUGMENTS = {"jitter": jitter, "pgpg": pgpg, "none": _none}
 
 
 def build_box_augment(cfg: Mapping | None):
@@ -97,5 +99,5 @@ def build_box_augment(cfg: Mapping | None):
     params = dict(cfg)
     name = params.pop("name", None)
     if name not in BOX_AUGMENTS:
-        raise ValueError(f"unknown box augmentation {name!r}; known: {', '.join(sorted(BOX_AUGMENTS))}")
-    return BOX_AUGMENTS[name](**params)
+        raise ValueError(f"unknown box augmentation {name!r}; known: {', '.join(BOX_AUGMENTS.names())}")
+    return BOX_AUGMENTS.build(name, **params)

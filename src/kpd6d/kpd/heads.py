@@ -20,6 +20,7 @@ import torch
 from torch import nn
 
 from kpd6d.pretrained import IMAGENET
+from kpd6d.registry import HEADS
 
 __all__ = ["HEADS", "DeconvHead", "FPNHead", "KeypointNet"]
 
@@ -33,6 +34,7 @@ def _n_upsamplings(reduction: int, out_stride: int) -> int:
     return int(n)
 
 
+@HEADS.register("deconv")
 class DeconvHead(nn.Module):
     """SimpleBaselines deconvolution head on the last (stride-32) feature."""
 
@@ -55,6 +57,7 @@ class DeconvHead(nn.Module):
         return self.final(self.deconv(feats[-1]))
 
 
+@HEADS.register("fpn")
 class FPNHead(nn.Module):
     """FPN-style top-down upsampling head to the output stride."""
 
@@ -80,9 +83,6 @@ class FPNHead(nn.Module):
         return self.final(self.smooth(x))
 
 
-HEADS = {"deconv": DeconvHead, "fpn": FPNHead}
-
-
 class KeypointNet(nn.Module):
     """Backbone + head: images (B, 3, H, W) in [0, 1] → heatmaps (B, G·K, H/s, W/s)."""
 
@@ -99,8 +99,8 @@ class KeypointNet(nn.Module):
         head = {k: v for k, v in dict(head).items() if v is not None}
         kind = head.pop("name", "deconv")
         if kind not in HEADS:
-            raise ValueError(f"unknown head {kind!r}; known heads: {', '.join(sorted(HEADS))}")
-        self.head = HEADS[kind](self.backbone.channels, self.backbone.reductions,
+            raise ValueError(f"unknown head {kind!r}; known heads: {', '.join(HEADS.names())}")
+        self.head = HEADS.get(kind)(self.backbone.channels, self.backbone.reductions,
                                 self.num_groups * self.num_keypoints, out_stride=self.out_stride, **head)
         # the normalisation the backbone's weights expect (each backbone states it)
         self.register_buffer("mean", torch.tensor(getattr(self.backbone, "mean", IMAGENET[0])).view(1, 3, 1, 1), persistent=False)

@@ -149,3 +149,128 @@ def test_merge_refuses_shards_with_other_settings_or_counts(tmp_path, models_dir
     # a different shard count does not see these shards
     with pytest.raises(ShardMergeError, match="shard 0 of 2 has not finished"):
         merge_shards(root, "train", 2)
+
+
+# ---------------------------------------------------------------------------------------------
+# sharded evaluation
+# ---------------------------------------------------------------------------------------------
+def _evaluate_cli(monkeypatch, *args):
+    import sys
+
+    from kpd6d.cli.evaluate import main
+
+    monkeypatch.setattr(sys, "argv", ["kpd6d-evaluate", *args])
+    main()
+
+
+def _rows(path: Path) -> list[str]:
+    """results.csv rows without the measured time column, sorted as the single job sorts them."""
+    lines = path.read_text().splitlines()
+    assert lines[0] == "scene_id,im_id,obj_id,score,R,t,time"
+    return sorted(line.rsplit(",", 1)[0] for line in lines[1:])
+
+
+_TIMES = ("fps", "stage_seconds_per_frame")  # measured, never equal between two runs
+
+
+def _tiny_kpd_checkpoint(path: Path) -> Path:
+    """An untrained KPD on the few-layer ``tiny`` backbone for test_evaluate's objects 1 and 2."""
+    import torch
+    from test_evaluate import _keypoints
+
+    from kpd6d.kpd.module import KPDModule
+
+    torch.manual_seed(0)
+    m = KPDModule(obj_ids=[1, 2], keypoints_3d=[_keypoints(1), _keypoints(2)], diameters=[103.9, 94.3],
+                  backbone={"name": "tiny", "width": 8}, head={"name": "deconv", "deconv_channels": 16},
+                  input_size=64, out_stride=4)
+    torch.save({"hyper_parameters": dict(m.hparams), "state_dict": m.state_dict()}, path)
+    return path
+
+
+def test_two_evaluation_shards_merged_are_the_single_job(tmp_path, monkeypatch, capsys, one_torch_thread):
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+    from test_evaluate import make_dataset
+
+    from kpd6d.config import config_dir
+    from kpd6d.workflow import run_evaluation
+
+    root, _, _ = make_dataset(tmp_path / "ds", n_frames=5, hidden=(3, 2))
+    ckpt = _tiny_kpd_checkpoint(tmp_path / "kpd.ckpt")
+    common = [f"data.root={root}", f"kpd_ckpt={ckpt}", "detector_ckpt=oracle", "device=cpu", "progress=false",
+              "overlays=1", "pnp=epnp_ransac", "select.top_l=8", "batch_size=2"]
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("evaluate", overrides=common)
+
+    def run(out, **kw):
+        return run_evaluation(OmegaConf.merge(cfg, {"out_dir": str(out), **kw}), out)
+
+    one, many = tmp_path / "one", tmp_path / "many"
+    run(one)
+    assert run(many, shard=0, num_shards=2)["frames"] == 3
+    # shard 1 through the command line, as a multirun job runs it
+    _evaluate_cli(monkeypatch, *common, f"out_dir={many}", "shard=1", "num_shards=2", f"hydra.run.dir={tmp_path / 'h'}")
+    assert "shard 1 of 2: predictions of 2 frames" in capsys.readouterr().out
+    assert not (many / "metrics.json").exists()
+    # batches of 2 dealt round robin: frames 0, 1, 4 to shard 0, frames 2, 3 to shard 1
+    marker = json.loads((many / "shards/shard-1-of-2/shard.json").read_text())
+    assert marker["frames"] == [[1, 2], [1, 3]]
+    run(many, num_shards=2, merge=True)
+    rows = _rows(one / "results.csv")
+    assert rows and _rows(many / "results.csv") == rows
+    a, b = (json.loads((d / "metrics.json").read_text()) for d in (one, many))
+    assert {k: v for k, v in a.items() if k not in _TIMES} == {k: v for k, v in b.items() if k not in _TIMES}
+    assert a["mean"]["n"] == 10
+    for name in ("test_targets_bop19.json", "overlays/000001_000000.png"):
+        assert (one / name).read_bytes() == (many / name).read_bytes(), name
+    strip = [{k: v for k, v in json.loads(line).items() if k not in ("time", "stages")}
+             for line in (one / "predictions.jsonl").read_text().splitlines()]
+    assert strip == [{k: v for k, v in json.loads(line).items() if k not in ("time", "stages")}
+                     for line in (many / "predictions.jsonl").read_text().splitlines()]
+    # a shard without out_dir is refused (each Hydra job would get its own folder)
+    with pytest.raises(SystemExit, match="needs out_dir"):
+        _evaluate_cli(monkeypatch, *common, "shard=1", "num_shards=2", f"hydra.run.dir={tmp_path / 'h2'}")
+
+
+def test_evaluation_merge_names_unfinished_shards_missing_and_duplicated_frames(tmp_path):
+    from test_evaluate import BoxKeyedKPD, _pipeline, make_dataset
+
+    from kpd6d.data import BopDataset
+    from kpd6d.evaluation.runner import ShardMergeError, evaluate
+
+    root, poses, K = make_dataset(tmp_path / "ds", n_frames=4)
+    out = tmp_path / "run"
+
+    def run(**kw):
+        return evaluate(_pipeline(BoxKeyedKPD(root, poses, K)), BopDataset(root), out, oracle=True, n_overlays=0,
+                        progress=False, run_info={"pnp": "epnp"}, num_shards=2, **kw)
+
+    assert run(shard=0) == {"shard": 0, "num_shards": 2, "frames": 2, "out_dir": str(out / "shards/shard-0-of-2")}
+    with pytest.raises(ShardMergeError, match=r"shard 1 of 2 has not finished"):
+        run(merge=True)
+    run(shard=1)
+    p0, p1 = out / "shards/shard-0-of-2/predictions.jsonl", out / "shards/shard-1-of-2/predictions.jsonl"
+    l0, l1 = p0.read_text().splitlines(), p1.read_text().splitlines()
+    assert [json.loads(x)["im_id"] for x in l0] == [0, 2] and [json.loads(x)["im_id"] for x in l1] == [1, 3]
+    p0.write_text(l0[0] + "\n" + l1[0] + "\n")  # frame 2 lost, frame 1 predicted by both shards
+    with pytest.raises(ShardMergeError) as err:
+        run(merge=True)
+    msg = str(err.value)
+    assert "frame (scene 1, im_id 2) is missing: shard 0 of 2 has no prediction for it" in msg
+    assert "frame (scene 1, im_id 1) is duplicated: predicted by shards 0, 1 (it belongs to shard 1)" in msg
+    assert not (out / "metrics.json").exists()
+    # without the duplicate, rerunning shard 0 redoes only its lost frame
+    p0.write_text(l0[0] + "\n")
+    kpd = BoxKeyedKPD(root, poses, K)
+    evaluate(_pipeline(kpd), BopDataset(root), out, oracle=True, n_overlays=0, progress=False,
+             run_info={"pnp": "epnp"}, num_shards=2, shard=0)
+    assert kpd.calls == 1
+    m = run(merge=True)
+    assert m["mean"]["add_s_01d"] == 1.0 and m["mean"]["n"] == 8
+    # a shard with other settings is named
+    with pytest.raises(ValueError, match=r"other settings \(pnp"):
+        evaluate(_pipeline(BoxKeyedKPD(root, poses, K)), BopDataset(root), out, oracle=True, n_overlays=0,
+                 progress=False, run_info={"pnp": "sqpnp"}, num_shards=2, shard=1)
+    with pytest.raises(ValueError, match="merge=true needs num_shards"):
+        evaluate(_pipeline(BoxKeyedKPD(root, poses, K)), BopDataset(root), out, merge=True, progress=False)

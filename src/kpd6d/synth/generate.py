@@ -19,6 +19,7 @@ only. :func:`kpd6d.synth.shards.merge_shards` checks the union and writes the fi
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import time
@@ -205,6 +206,28 @@ def _run_pool(ctx, n_workers: int, spec: dict, todo: list[int], chunk: int, cons
                            f"{how}") from exc
     finally:
         ex.shutdown(wait=True, cancel_futures=True)
+
+
+@contextlib.contextmanager
+def _standard_default_start_method(method: str):
+    """Inside a process whose default start method is not one of multiprocessing's own (a joblib /
+    loky worker, e.g. a job of Hydra's joblib launcher: "loky"), a spawned child fails while it starts
+    (it sets its parent's default method, which it does not know). Make ``method`` the default while
+    the pool starts its workers, then put the old one back."""
+    import multiprocessing as mp
+
+    prev = mp.get_start_method(allow_none=True)
+    if prev is None or prev in mp.get_all_start_methods():
+        yield
+        return
+    mp.set_start_method(method, force=True)
+    try:
+        yield
+    finally:
+        try:
+            mp.set_start_method(prev, force=True)
+        except ValueError:
+            pass
 
 
 def _make_image(index: int) -> dict:
@@ -439,7 +462,8 @@ def generate_dataset(out_dir: str | os.PathLike, models_dir: str | os.PathLike |
             ctx = mp.get_context(cfg.mp_start_method)
             spec["single_thread_gl"] = True
             chunk = max(1, min(8, len(todo) // (4 * n_workers)))
-            _run_pool(ctx, n_workers, spec, todo, chunk, consume)
+            with _standard_default_start_method(ctx.get_start_method()):
+                _run_pool(ctx, n_workers, spec, todo, chunk, consume)
     finally:  # also on errors / Ctrl-C: record every image finished so far, so a rerun resumes
         for s in scenes.values():
             s.flush()

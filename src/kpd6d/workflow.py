@@ -135,7 +135,9 @@ def evaluate_detector_on(det_ckpt, root: Path, split: str, obj_ids, max_frames=N
 def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) -> dict:
     """Evaluate a detector + KPD checkpoint pair on a BOP split (the work of ``kpd6d-evaluate``, step 5
     of :func:`run_experiment`); ``cfg`` is a composed conf/evaluate.yaml. Writes metrics.json,
-    results.csv, report.md, plots and overlays into ``out_dir`` and returns the metrics."""
+    results.csv, report.md, plots and overlays into ``out_dir`` and returns the metrics. With
+    ``num_shards`` > 1 only shard ``shard``'s predictions (returns the shard's summary), or with
+    ``merge=true`` the merge of the finished shards (:func:`kpd6d.evaluation.runner.evaluate`)."""
     from omegaconf import OmegaConf
 
     from kpd6d.data import BopDataset
@@ -170,7 +172,9 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
         info.update(backend=backend, export_dir=str(cfg.export_dir))
     return evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle", batch_size=cfg_int(cfg, "batch_size"),
                     max_frames=cfg.data.max_frames, n_overlays=cfg_int(cfg, "overlays"), run_info=info,
-                    progress=bool(cfg.progress), extra_metrics=extra_metrics)
+                    progress=bool(cfg.progress), extra_metrics=extra_metrics,
+                    shard=to_int(cfg.get("shard", 0), "shard"), num_shards=to_int(cfg.get("num_shards", 1), "num_shards"),
+                    merge=bool(cfg.get("merge", False)))
 
 
 def _evaluate(cfg, root: Path, det, kpd, out_dir: Path) -> dict:

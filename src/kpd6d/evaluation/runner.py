@@ -9,6 +9,15 @@ same object greedily in score order, each taking the free instance with the lowe
 
 Predictions are appended to ``predictions.jsonl`` frame by frame; running again on the same
 ``out_dir`` skips the frames already there (resume after interruption).
+
+In shards (``shard=i, num_shards=n``): the frames are cut into the single job's batches and batch
+``b`` goes to shard ``b % n`` (:func:`frame_shards`), so every frame is predicted in the same batch
+as in the single job. A shard writes only its predictions, into
+``<out_dir>/shards/shard-i-of-n/`` (``predictions.jsonl``, ``settings.json``, and once finished the
+marker ``shard.json``, atomically); it resumes like a single job. ``merge=True`` checks that every
+shard finished with the same settings and that every frame was predicted exactly once, writes the
+union as ``<out_dir>/predictions.jsonl`` and computes everything else from it as the single job does:
+the same results.csv rows and metrics (all but the measured times).
 """
 
 from __future__ import annotations
@@ -24,9 +33,10 @@ import numpy as np
 from kpd6d.evaluation.errors import add_error, adds_error, proj2d_error
 from kpd6d.evaluation.recall import add_s_accuracy, auc, proj2d_accuracy, recall_at
 from kpd6d.evaluation.results_io import PoseResult, write_bop_results
-from kpd6d.io import atomic_write_image, atomic_write_json
+from kpd6d.io import atomic_write_image, atomic_write_json, atomic_write_text, read_json
 
-__all__ = ["ADD_THRESHOLDS", "PX_THRESHOLDS", "compute_metrics", "eval_instances", "evaluate", "match_predictions"]
+__all__ = ["ADD_THRESHOLDS", "PX_THRESHOLDS", "ShardMergeError", "compute_metrics", "eval_instances", "evaluate",
+           "frame_shards", "match_predictions"]
 
 PX_THRESHOLDS = np.linspace(0.0, 50.0, 51)  # 2D projection accuracy curve (px)
 ADD_THRESHOLDS = np.linspace(0.0, 0.5, 51)  # ADD(-S) accuracy curve (fraction of the diameter)
@@ -142,14 +152,17 @@ def _batches(frames, batch_size):
 _SETTINGS_FILE = "settings.json"
 
 
+def _settings(run_info: dict | None, oracle: bool) -> dict:
+    """What made a set of predictions: ``run_info`` minus the device, plus ``oracle`` (as JSON reads it)."""
+    return json.loads(json.dumps({k: v for k, v in (run_info or {}).items() if k != "device"} | {"oracle": oracle},
+                                 default=str))
+
+
 def _check_resumable(out_dir: Path, run_info: dict | None, oracle: bool) -> None:
     """Predictions in ``out_dir`` are reused only when they were made with the same settings
     (``run_info`` minus the device): rerunning with another solver, top-l, refinement or checkpoint
     into the same folder is an error that names the differences, never a silent mix."""
-    import json
-
-    settings = json.loads(json.dumps({k: v for k, v in (run_info or {}).items() if k != "device"} | {"oracle": oracle},
-                                     default=str))
+    settings = _settings(run_info, oracle)
     path = out_dir / _SETTINGS_FILE
     if path.is_file():
         old = json.loads(path.read_text())
@@ -167,16 +180,20 @@ def _check_resumable(out_dir: Path, run_info: dict | None, oracle: bool) -> None
 
 def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = False, batch_size: int = 1,
              max_frames: int | None = None, n_overlays: int = 6, run_info: dict | None = None, progress: bool = True,
-             extra_metrics: dict | None = None) -> dict:
+             extra_metrics: dict | None = None, shard: int = 0, num_shards: int = 1, merge: bool = False) -> dict:
     """Evaluate ``pipeline`` on ``dataset`` (a :class:`kpd6d.data.BopDataset`); writes everything to ``out_dir``.
 
     ``oracle``: give the detector the GT boxes (for the ``oracle`` detector). BOP19 AR_MSSD / AR_MSPD
     are computed on the evaluated frames only (their targets are written to
     ``test_targets_bop19.json`` in ``out_dir``). ``extra_metrics`` (e.g. ``{"detector": {...}}``, the
     detector's own AP on the same frames) go into metrics.json and the report. Returns the metrics dict.
-    """
-    from tqdm import tqdm
 
+    ``shard`` / ``num_shards`` (> 1): predict only this shard's frames (:func:`frame_shards`) into
+    ``<out_dir>/shards/shard-<shard>-of-<num_shards>/`` and return ``{"shard", "num_shards", "frames",
+    "out_dir"}``; no metrics. ``merge=True`` (with ``num_shards``): gather the finished shards'
+    predictions (a :class:`ShardMergeError` names an unfinished shard, other settings, a missing or
+    duplicated frame) and write everything the single job writes.
+    """
     from kpd6d.evaluation.bop19 import score_bop19_file
     from kpd6d.evaluation.report import plot_curves, write_report_md
     from kpd6d.visualize import draw_overlay
@@ -187,10 +204,14 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
         raise ValueError(f"evaluate: the output folder {str(out_dir)!r} is inside the dataset {str(dataset.root)!r}; "
                          "outputs never go into an input dataset (they would overwrite its files, e.g. "
                          "test_targets_bop19.json): choose an out_dir outside it")
+    shard, num_shards = _check_shard(shard, num_shards, merge)
     out_dir.mkdir(parents=True, exist_ok=True)
     frames = list(dataset)[: max_frames if max_frames else None]
     if not frames:
         raise ValueError(f"{dataset!r}: no frames to evaluate")
+    if num_shards > 1 and not merge:
+        return _evaluate_shard(pipeline, frames, out_dir, shard, num_shards, batch_size=batch_size, oracle=oracle,
+                               run_info=run_info, progress=progress)
     obj_ids = sorted({i.obj_id for f in frames for i in eval_instances(f)})
     models = {m.obj_id: m for m in dataset.load_models(obj_ids)}
     points = {o: _eval_points(m) for o, m in models.items()}
@@ -198,38 +219,10 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
 
     pred_path = out_dir / "predictions.jsonl"
     _check_resumable(out_dir, run_info, oracle)
+    if merge:  # the shards' predictions, checked, become this folder's predictions.jsonl
+        _merge_shard_predictions(out_dir, frames, num_shards, _settings(run_info, oracle), pred_path)
+    _predict_frames(pipeline, frames, pred_path, batch_size=batch_size, oracle=oracle, progress=progress)
     done = _load_done(pred_path)
-    todo = [f for f in frames if (f.scene_id, f.im_id) not in done]
-    if pred_path.is_file() and pred_path.stat().st_size:
-        with pred_path.open("rb") as f:
-            f.seek(-1, os.SEEK_END)
-            cut = f.read(1) != b"\n"
-        if cut:  # a line cut by an interruption: end it, so the next record starts on its own line
-            with pred_path.open("a") as f:
-                f.write("\n")
-    if done and progress:
-        print(f"evaluate: resuming {out_dir}: {len(frames) - len(todo)} of {len(frames)} frames already in "
-              f"{pred_path.name}", flush=True)
-    with pred_path.open("a") as fout, tqdm(total=len(frames), initial=len(frames) - len(todo), desc="evaluate",
-                                           unit="frame", disable=not progress) as bar:
-        for batch in _batches(todo, max(1, int(batch_size))):
-            images = [f.load_rgb() for f in batch]
-            sizes = {im.shape for im in images}
-            groups = [list(range(len(batch)))] if len(sizes) == 1 else [[i] for i in range(len(batch))]
-            for g in groups:
-                targets = [oracle_targets(batch[i], eval_instances(batch[i])) for i in g] if oracle else None
-                t0 = time.perf_counter()
-                preds = pipeline.predict_batch([images[i] for i in g], np.stack([batch[i].K for i in g]), targets)
-                dt = (time.perf_counter() - t0) / len(g)
-                timings = {k: v / len(g) for k, v in getattr(pipeline, "last_timings", {}).items()}
-                for i, ps in zip(g, preds):
-                    rec = {"scene_id": batch[i].scene_id, "im_id": batch[i].im_id, "time": dt, "stages": timings,
-                           "preds": [{"obj_id": int(p["obj_id"]), "score": float(p["score"]), "ok": bool(p["ok"]),
-                                      "R": np.asarray(p["R"]).tolist(), "t": np.asarray(p["t"]).tolist()} for p in ps]}
-                    fout.write(json.dumps(rec) + "\n")
-                    fout.flush()
-                    done[(rec["scene_id"], rec["im_id"])] = rec
-                bar.update(len(g))
 
     # errors and metrics
     records, results = [], []
@@ -297,3 +290,144 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
         overlays.append(name)
     write_report_md(metrics, out_dir / "report.md", overlays)
     return metrics
+
+
+# ---------------------------------------------------------------------------------------------
+# predicting, in one job or in shards
+# ---------------------------------------------------------------------------------------------
+class ShardMergeError(ValueError):
+    """The shards of a sharded evaluation do not add up to the single job's frames; the message lists
+    each problem with the frame and the shard."""
+
+
+def frame_shards(n_frames: int, batch_size: int, num_shards: int) -> list[int]:
+    """The shard of each of ``n_frames`` frames: the single job's batches (``batch_size`` consecutive
+    frames) dealt round robin, batch ``b`` to shard ``b % num_shards``."""
+    bs = max(1, int(batch_size))
+    return [(p // bs) % int(num_shards) for p in range(int(n_frames))]
+
+
+def _check_shard(shard, num_shards, merge) -> tuple[int, int]:
+    from kpd6d.config import to_int
+
+    shard, num_shards = to_int(shard, "shard"), to_int(num_shards, "num_shards")
+    if num_shards < 1:
+        raise ValueError(f"num_shards must be >= 1, got {num_shards}")
+    if not 0 <= shard < num_shards:
+        raise ValueError(f"shard must be in 0..num_shards-1 = 0..{num_shards - 1}, got {shard}")
+    if merge and num_shards < 2:
+        raise ValueError("merge=true needs num_shards=<n>, the number of shards the evaluation ran in")
+    return shard, num_shards
+
+
+def _shard_dir(out_dir: Path, shard: int, num_shards: int) -> Path:
+    return out_dir / "shards" / f"shard-{shard}-of-{num_shards}"
+
+
+def _predict_frames(pipeline, frames, pred_path: Path, *, batch_size: int, oracle: bool, progress: bool,
+                    desc: str = "evaluate") -> None:
+    """Append the predictions of every frame of ``frames`` not yet in ``pred_path`` to it, batch by batch."""
+    from tqdm import tqdm
+
+    done = _load_done(pred_path)
+    todo = [f for f in frames if (f.scene_id, f.im_id) not in done]
+    if pred_path.is_file() and pred_path.stat().st_size:
+        with pred_path.open("rb") as f:
+            f.seek(-1, os.SEEK_END)
+            cut = f.read(1) != b"\n"
+        if cut:  # a line cut by an interruption: end it, so the next record starts on its own line
+            with pred_path.open("a") as f:
+                f.write("\n")
+    if not todo:
+        return
+    if done and progress:
+        print(f"evaluate: resuming {pred_path.parent}: {len(frames) - len(todo)} of {len(frames)} frames already in "
+              f"{pred_path.name}", flush=True)
+    with pred_path.open("a") as fout, tqdm(total=len(frames), initial=len(frames) - len(todo), desc=desc,
+                                           unit="frame", disable=not progress) as bar:
+        for batch in _batches(todo, max(1, int(batch_size))):
+            images = [f.load_rgb() for f in batch]
+            sizes = {im.shape for im in images}
+            groups = [list(range(len(batch)))] if len(sizes) == 1 else [[i] for i in range(len(batch))]
+            for g in groups:
+                targets = [oracle_targets(batch[i], eval_instances(batch[i])) for i in g] if oracle else None
+                t0 = time.perf_counter()
+                preds = pipeline.predict_batch([images[i] for i in g], np.stack([batch[i].K for i in g]), targets)
+                dt = (time.perf_counter() - t0) / len(g)
+                timings = {k: v / len(g) for k, v in getattr(pipeline, "last_timings", {}).items()}
+                for i, ps in zip(g, preds):
+                    rec = {"scene_id": batch[i].scene_id, "im_id": batch[i].im_id, "time": dt, "stages": timings,
+                           "preds": [{"obj_id": int(p["obj_id"]), "score": float(p["score"]), "ok": bool(p["ok"]),
+                                      "R": np.asarray(p["R"]).tolist(), "t": np.asarray(p["t"]).tolist()} for p in ps]}
+                    fout.write(json.dumps(rec) + "\n")
+                    fout.flush()
+                bar.update(len(g))
+
+
+def _evaluate_shard(pipeline, frames, out_dir: Path, shard: int, num_shards: int, *, batch_size: int, oracle: bool,
+                    run_info: dict | None, progress: bool) -> dict:
+    """Predict shard ``shard``'s frames into its folder; write its marker ``shard.json`` when done."""
+    sdir = _shard_dir(out_dir, shard, num_shards)
+    sdir.mkdir(parents=True, exist_ok=True)
+    _check_resumable(sdir, run_info, oracle)
+    marker = sdir / "shard.json"
+    if marker.is_file():
+        marker.unlink()  # not finished until written again
+    owner = frame_shards(len(frames), batch_size, num_shards)
+    mine = [f for f, o in zip(frames, owner) if o == shard]
+    _predict_frames(pipeline, mine, sdir / "predictions.jsonl", batch_size=batch_size, oracle=oracle,
+                    progress=progress, desc=f"evaluate shard {shard}/{num_shards}")
+    atomic_write_json(marker, {"shard": shard, "num_shards": num_shards, "batch_size": max(1, int(batch_size)),
+                               "frames_total": len(frames), "frames": [[f.scene_id, f.im_id] for f in mine],
+                               "settings": _settings(run_info, oracle)})
+    return {"shard": shard, "num_shards": num_shards, "frames": len(mine), "out_dir": str(sdir)}
+
+
+def _merge_shard_predictions(out_dir: Path, frames, num_shards: int, settings: dict, pred_path: Path) -> None:
+    """Check the shards' predictions against ``frames`` and write them, in frame order, to ``pred_path``."""
+    problems: list[str] = []
+    recs: dict[tuple[int, int], dict] = {}
+    owners: dict[tuple[int, int], list[int]] = {}
+    batch_sizes = set()
+    for i in range(num_shards):
+        sdir = _shard_dir(out_dir, i, num_shards)
+        marker = sdir / "shard.json"
+        if not marker.is_file():
+            problems.append(f"shard {i} of {num_shards} has not finished: {marker} does not exist (rerun it with "
+                            f"shard={i} num_shards={num_shards} and the same settings; it resumes)")
+            continue
+        m = read_json(marker, what="shard marker")
+        batch_sizes.add(m.get("batch_size"))
+        old = m.get("settings") or {}
+        diff = sorted(k for k in set(old) | set(settings) if old.get(k) != settings.get(k))
+        if diff:
+            problems.append(f"shard {i} of {num_shards} predicted with other settings ("
+                            + "; ".join(f"{k} was {old.get(k)!r}, now {settings.get(k)!r}" for k in diff) + ")")
+        if m.get("frames_total") != len(frames):
+            problems.append(f"shard {i} of {num_shards} was cut from {m.get('frames_total')} frames, the merge from "
+                            f"{len(frames)} (other data.split / data.max_frames / data.obj_ids?)")
+        for key, rec in _load_done(sdir / "predictions.jsonl").items():
+            owners.setdefault(key, []).append(i)
+            recs[key] = rec
+    keys = [(f.scene_id, f.im_id) for f in frames]
+    bs = next(iter(batch_sizes)) if len(batch_sizes) == 1 else 1
+    if len(batch_sizes) > 1:
+        problems.append(f"the shards ran with different batch_size values {sorted(batch_sizes, key=str)}")
+    expected = frame_shards(len(keys), bs or 1, num_shards)
+    for key, want in zip(keys, expected):
+        got = owners.get(key, [])
+        where = f"frame (scene {key[0]}, im_id {key[1]})"
+        if not got:
+            problems.append(f"{where} is missing: shard {want} of {num_shards} has no prediction for it (rerun "
+                            f"shard {want}; it resumes)")
+        elif len(got) > 1:
+            problems.append(f"{where} is duplicated: predicted by shards {', '.join(map(str, got))} (it belongs to "
+                            f"shard {want})")
+    for key in sorted(set(owners) - set(keys)):
+        problems.append(f"frame (scene {key[0]}, im_id {key[1]}) predicted by shard {owners[key][0]} is not among the "
+                        f"{len(keys)} frames evaluated (other data.split / data.max_frames?)")
+    if problems:
+        lines = [f"  - {p}" for p in problems[:20]] + ([f"  ... and {len(problems) - 20} more"] if len(problems) > 20 else [])
+        raise ShardMergeError("\n".join([f"evaluate: the {num_shards} shards in {out_dir / 'shards'} cannot be "
+                                         f"merged ({len(problems)} problem{'s' * (len(problems) > 1)}):", *lines]))
+    atomic_write_text(pred_path, "".join(json.dumps(recs[k]) + "\n" for k in keys))

@@ -6,11 +6,13 @@
 (:mod:`~kpd6d.synth.tabletop`: the table, camera and resting poses of ``layout: tabletop``),
 :mod:`~kpd6d.synth.photometric` applies blur / noise / colour shifts. BOP files are written through
 :mod:`kpd6d.data`; :mod:`~kpd6d.synth.prepare` is the one data-preparation path of the workflow and the
-training stages.
+training stages; :mod:`~kpd6d.synth.shards` merges a split generated in shards (``shard=i, num_shards=n``).
 """
 
 from kpd6d.synth.config import SynthConfig, default_K
 from kpd6d.synth.generate import generate_dataset, image_rng
 from kpd6d.synth.prepare import generate_splits, prepare_data
+from kpd6d.synth.shards import ShardMergeError, merge_shards
 
-__all__ = ["SynthConfig", "default_K", "generate_dataset", "generate_splits", "image_rng", "prepare_data"]
+__all__ = ["ShardMergeError", "SynthConfig", "default_K", "generate_dataset", "generate_splits", "image_rng",
+           "merge_shards", "prepare_data"]

@@ -6,14 +6,25 @@ number of workers. Workers write each image's files (rgb, mask_visib, depth) ato
 its annotations; the main process keeps the scene JSON files and rewrites them atomically every few
 seconds and at the end. An image is complete when all three scene JSON files list it and its files
 exist; a rerun skips complete images and makes the rest (after an interruption, the same bytes).
+
+Shards (``shard=i, num_shards=n``, n > 1): image ``k`` of the split belongs to shard ``k % n`` and is
+made exactly as in the unsharded run (same random generator, same files). Several shards write into
+one root at the same time without clobbering each other: a shard writes the image files it owns, and
+its own partial scene files ``scene_gt.shard-i-of-n.json`` (``scene_camera`` / ``scene_gt_info``
+alike) instead of the final ones, and, once all its images are done, the marker
+``<root>/shards/<split>/shard-i-of-n.json``. Dataset-level files (models/, camera.json,
+dataset_info.json) are identical whichever shard writes them; keypoints.json is designated by shard 0
+only. :func:`kpd6d.synth.shards.merge_shards` checks the union and writes the final scene files.
 """
 
 from __future__ import annotations
 
+import contextlib
 import os
 import shutil
 import time
-from collections.abc import Sequence
+import uuid
+from collections.abc import Callable, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -33,7 +44,7 @@ from kpd6d.data.bop_io import (
 from kpd6d.io import atomic_write_bytes, atomic_write_image, atomic_write_json, read_json
 from kpd6d.synth.config import SynthConfig
 
-__all__ = ["generate_dataset", "image_rng", "resolve_workers"]
+__all__ = ["generate_dataset", "image_rng", "resolve_workers", "shard_of", "shard_tag"]
 
 INFO_FILE = "dataset_info.json"
 
@@ -41,6 +52,26 @@ INFO_FILE = "dataset_info.json"
 def image_rng(seed: int, index: int) -> np.random.Generator:
     """The random generator of image ``index`` (independent of scheduling)."""
     return np.random.default_rng([int(seed), int(index)])
+
+
+def shard_tag(shard: int, num_shards: int) -> str:
+    """``"shard-<i>-of-<n>"``: the name part of a shard's files."""
+    return f"shard-{int(shard)}-of-{int(num_shards)}"
+
+
+def shard_of(index: int, num_shards: int) -> int:
+    """The shard that makes image ``index`` of a split generated in ``num_shards`` shards (round robin)."""
+    return int(index) % int(num_shards)
+
+
+def check_shard(shard: int, num_shards: int) -> tuple[int, int]:
+    """``(shard, num_shards)`` as ints, or a ValueError naming the bad value."""
+    shard, num_shards = to_int(shard, "shard"), to_int(num_shards, "num_shards")
+    if num_shards < 1:
+        raise ValueError(f"num_shards must be >= 1, got {num_shards}")
+    if not 0 <= shard < num_shards:
+        raise ValueError(f"shard must be in 0..num_shards-1 = 0..{num_shards - 1}, got {shard}")
+    return shard, num_shards
 
 
 def resolve_workers(workers: int | None) -> int:
@@ -53,13 +84,17 @@ def resolve_workers(workers: int | None) -> int:
 # ---------------------------------------------------------------------------------------------
 # models folder
 # ---------------------------------------------------------------------------------------------
-def _write_models(root: Path, models_dir: Path | None, obj_ids: list[int] | None, cfg: SynthConfig) -> list[int]:
-    """Fill ``<root>/models`` (meshes, models_info.json, keypoints.json) unless already there."""
+def _write_models(root: Path, models_dir: Path | None, obj_ids: list[int] | None, cfg: SynthConfig,
+                  *, sharded: bool = False, designate: bool = True) -> list[int]:
+    """Fill ``<root>/models`` (meshes, models_info.json, keypoints.json unless ``designate`` is false)
+    unless already there. ``sharded``: other shards may be writing here now, so their temporary files
+    are left alone (every file here is written identically by whichever shard gets there first)."""
     from kpd6d.objects import load_bop_models
 
     out = root / "models"
     out.mkdir(parents=True, exist_ok=True)
-    _remove_stale_tmp(out)
+    if not sharded:
+        _remove_stale_tmp(out)
     info_path = out / "models_info.json"
     if models_dir is None:
         from kpd6d.objects import procedural_objects
@@ -76,13 +111,13 @@ def _write_models(root: Path, models_dir: Path | None, obj_ids: list[int] | None
             for f in sorted(src.parent.glob(src.stem + ".*")):  # the mesh and its texture image(s)
                 dst = out / f.name
                 if not dst.is_file():
-                    tmp = out / f".{f.name}.copy.tmp"
+                    tmp = out / f".{f.name}.{uuid.uuid4().hex}.tmp"  # unique: shards may copy at once
                     shutil.copyfile(f, tmp)
                     os.replace(tmp, dst)
     ids = [m.obj_id for m in models]
     if not info_path.is_file():
         atomic_write_json(info_path, {str(m.obj_id): m.info() for m in models})
-    if cfg.designator is not None and not (out / "keypoints.json").is_file():
+    if designate and cfg.designator is not None and not (out / "keypoints.json").is_file():
         from kpd6d.keypoints.designate import designate_objects, designator_name_params
 
         name, params = designator_name_params(cfg.designator)
@@ -94,10 +129,13 @@ def _write_models(root: Path, models_dir: Path | None, obj_ids: list[int] | None
     return ids
 
 
-def _remove_stale_tmp(folder: Path) -> None:
-    """Delete temporary files an interrupted run left behind (``.<name>.*.tmp``)."""
+def _remove_stale_tmp(folder: Path, owned: Callable[[str], bool] | None = None) -> None:
+    """Delete temporary files an interrupted run left behind (``.<name>.*.tmp``); with ``owned``,
+    only those whose final file name ``<name>`` it accepts (a shard's own files)."""
     if folder.is_dir():
         for p in folder.glob(".*.tmp"):
+            if owned is not None and not owned(p.name[1:].rsplit(".", 2)[0]):
+                continue
             try:
                 p.unlink()
             except OSError:
@@ -170,6 +208,28 @@ def _run_pool(ctx, n_workers: int, spec: dict, todo: list[int], chunk: int, cons
         ex.shutdown(wait=True, cancel_futures=True)
 
 
+@contextlib.contextmanager
+def _standard_default_start_method(method: str):
+    """Inside a process whose default start method is not one of multiprocessing's own (a joblib /
+    loky worker, e.g. a job of Hydra's joblib launcher: "loky"), a spawned child fails while it starts
+    (it sets its parent's default method, which it does not know). Make ``method`` the default while
+    the pool starts its workers, then put the old one back."""
+    import multiprocessing as mp
+
+    prev = mp.get_start_method(allow_none=True)
+    if prev is None or prev in mp.get_all_start_methods():
+        yield
+        return
+    mp.set_start_method(method, force=True)
+    try:
+        yield
+    finally:
+        try:
+            mp.set_start_method(prev, force=True)
+        except ValueError:
+            pass
+
+
 def _make_image(index: int) -> dict:
     """Compose image ``index``, write its files, return its annotations."""
     spec, cfg, composer = _STATE["spec"], _STATE["cfg"], _STATE["composer"]
@@ -199,12 +259,13 @@ def _make_image(index: int) -> dict:
 class _SceneRecords:
     """The three scene JSON dicts of one scene folder, loaded from disk on resume."""
 
-    def __init__(self, sd: Path) -> None:
+    def __init__(self, sd: Path, tag: str | None = None) -> None:
         self.dir = sd
         self.gt: dict[int, list] = {}
         self.cam: dict[int, dict] = {}
         self.info: dict[int, list] = {}
-        paths = [sd / "scene_gt.json", sd / "scene_camera.json", sd / "scene_gt_info.json"]
+        self.paths = scene_files(sd, tag)
+        paths = self.paths
         if all(p.is_file() for p in paths):
             try:
                 self.gt = load_scene_gt(paths[0])
@@ -240,10 +301,22 @@ class _SceneRecords:
         if not self.dirty:
             return
         self.dir.mkdir(parents=True, exist_ok=True)
-        save_scene_gt(self.dir / "scene_gt.json", self.gt)
-        save_scene_camera(self.dir / "scene_camera.json", self.cam)
-        save_scene_gt_info(self.dir / "scene_gt_info.json", self.info)
+        save_scene_gt(self.paths[0], self.gt)
+        save_scene_camera(self.paths[1], self.cam)
+        save_scene_gt_info(self.paths[2], self.info)
         self.dirty = False
+
+
+def scene_files(sd: Path, tag: str | None = None) -> list[Path]:
+    """A scene folder's scene_gt / scene_camera / scene_gt_info files; with a shard ``tag``, that
+    shard's partial files (``scene_gt.<tag>.json``, ...)."""
+    suffix = f".{tag}.json" if tag else ".json"
+    return [sd / f"scene_gt{suffix}", sd / f"scene_camera{suffix}", sd / f"scene_gt_info{suffix}"]
+
+
+def shard_marker(root: Path, split: str, shard: int, num_shards: int) -> Path:
+    """The file a shard writes once all its images are done."""
+    return Path(root) / "shards" / split / f"{shard_tag(shard, num_shards)}.json"
 
 
 def _check_info(root: Path, split: str, models_part: dict, split_part: dict) -> dict:
@@ -283,14 +356,21 @@ def _check_info(root: Path, split: str, models_part: dict, split_part: dict) -> 
 # ---------------------------------------------------------------------------------------------
 def generate_dataset(out_dir: str | os.PathLike, models_dir: str | os.PathLike | None = None,
                      obj_ids: Sequence[int] | None = None, num_images: int = 1000, split: str = "train",
-                     seed: int = 0, workers: int = 1, *, progress: bool = True, **options: Any) -> Path:
+                     seed: int = 0, workers: int = 1, *, progress: bool = True, shard: int = 0,
+                     num_shards: int = 1, **options: Any) -> Path:
     """Write ``num_images`` render-and-paste images of the objects as a BOP dataset under ``out_dir``.
 
     ``models_dir`` is a BOP models folder (``obj_XXXXXX.ply`` + ``models_info.json``); ``None`` uses
     the procedural objects. ``workers`` processes render in parallel (0 or -1: all cores).
     ``options`` are the fields of :class:`~kpd6d.synth.config.SynthConfig` (conf/generate.yaml).
     Returns the dataset root. Rerunning with the same arguments resumes an interrupted run.
+
+    ``shard`` / ``num_shards``: make only the images ``k`` with ``k % num_shards == shard``, into
+    partial scene files, so that ``num_shards`` jobs (any machines sharing the folder) can write the
+    split at once; :func:`kpd6d.synth.shards.merge_shards` then writes the final scene files. The
+    union is the unsharded dataset byte for byte, whatever ``num_shards``.
     """
+    shard, num_shards = check_shard(shard, num_shards)
     cfg = SynthConfig.from_options(options)
     num_images, seed = to_int(num_images, "num_images"), to_int(seed, "seed")
     workers = None if workers is None else to_int(workers, "workers")
@@ -313,27 +393,36 @@ def generate_dataset(out_dir: str | os.PathLike, models_dir: str | os.PathLike |
     split_part["config"].pop("mp_start_method")
     split_part["config"].pop("flush_interval_s")
     _check_info(root, split, models_part, split_part)
-    ids = _write_models(root, None if models_dir is None else Path(models_dir), ids, cfg)
+    sharded = num_shards > 1
+    ids = _write_models(root, None if models_dir is None else Path(models_dir), ids, cfg, sharded=sharded,
+                        designate=shard == 0)
     K = cfg.camera_K()
     if not (root / "camera.json").is_file():
         save_camera(root / "camera.json", K, cfg.width, cfg.height, cfg.depth_scale)
 
     split_dir = root / split
+    tag = shard_tag(shard, num_shards) if sharded else None
+    marker = shard_marker(root, split, shard, num_shards) if sharded else None
+    mine = [k for k in range(num_images) if shard_of(k, num_shards) == shard]
     scenes: dict[int, _SceneRecords] = {}
     todo: list[int] = []
-    for index in range(num_images):
+    for index in mine:
         scene_id, im_id = divmod(index, cfg.scene_size)
         if scene_id not in scenes:
             sd = split_dir / f"{scene_id:06d}"
             for sub in ("", "rgb", "mask_visib", "depth"):
-                _remove_stale_tmp(sd / sub)
-            scenes[scene_id] = _SceneRecords(sd)
+                _remove_stale_tmp(sd / sub, _owned_by(scene_id, cfg.scene_size, shard, num_shards, tag, sub == ""))
+            scenes[scene_id] = _SceneRecords(sd, tag)
         rec = scenes[scene_id]
         if not rec.complete(im_id, cfg.rgb_format, cfg.depth):
             rec.drop(im_id)
             todo.append(index)
     if not todo:
+        if marker is not None:
+            _write_marker(marker, shard, num_shards, split, models_part, split_part, len(mine))
         return root
+    if marker is not None and marker.is_file():
+        marker.unlink()  # this shard is not finished until the marker is written again
 
     spec = {
         "root": str(root), "split_dir": str(split_dir), "obj_ids": ids, "seed": int(seed),
@@ -344,7 +433,8 @@ def generate_dataset(out_dir: str | os.PathLike, models_dir: str | os.PathLike |
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=num_images, initial=num_images - len(todo), desc=f"generate {split}", unit="img")
+        desc = f"generate {split}" + (f" ({tag})" if tag else "")
+        bar = tqdm(total=len(mine), initial=len(mine) - len(todo), desc=desc, unit="img")
     last_flush = time.monotonic()
 
     def consume(results):
@@ -372,10 +462,35 @@ def generate_dataset(out_dir: str | os.PathLike, models_dir: str | os.PathLike |
             ctx = mp.get_context(cfg.mp_start_method)
             spec["single_thread_gl"] = True
             chunk = max(1, min(8, len(todo) // (4 * n_workers)))
-            _run_pool(ctx, n_workers, spec, todo, chunk, consume)
+            with _standard_default_start_method(ctx.get_start_method()):
+                _run_pool(ctx, n_workers, spec, todo, chunk, consume)
     finally:  # also on errors / Ctrl-C: record every image finished so far, so a rerun resumes
         for s in scenes.values():
             s.flush()
         if bar is not None:
             bar.close()
+    if marker is not None:
+        _write_marker(marker, shard, num_shards, split, models_part, split_part, len(mine))
     return root
+
+
+def _owned_by(scene_id: int, scene_size: int, shard: int, num_shards: int, tag: str | None,
+              scene_dir: bool) -> Callable[[str], bool] | None:
+    """Which temporary files in a scene (sub)folder are the shard's own (None: unsharded, all)."""
+    if tag is None:
+        return None
+    if scene_dir:  # the scene JSON files: the shard's partial files only
+        return lambda name: f".{tag}." in name
+
+    def owned(name: str) -> bool:  # rgb/000007.jpg, mask_visib/000007_000001.png, depth/000007.png
+        head = name[:6]
+        return head.isdigit() and shard_of(scene_id * scene_size + int(head), num_shards) == shard
+
+    return owned
+
+
+def _write_marker(path: Path, shard: int, num_shards: int, split: str, models_part: dict, split_part: dict,
+                  n_images: int) -> None:
+    atomic_write_json(path, {"shard": shard, "num_shards": num_shards, "split": split, "images": n_images,
+                             "num_images": split_part["num_images"], "seed": split_part["seed"],
+                             "config": split_part["config"], "models": models_part})

@@ -212,3 +212,21 @@ def test_opencv_to_opengl_conversions(rng):
     np.testing.assert_allclose(R2, R, atol=1e-12)
     np.testing.assert_allclose(t2, t, atol=1e-9)
     np.testing.assert_allclose(G.cv_pose_to_gl_model_view(R, t), np.linalg.inv(cam_pose), atol=1e-9)
+
+
+def test_check_box_inputs_normalises_and_names_what_is_wrong():
+    from kpd6d.geometry import check_box_inputs
+
+    boxes, ids, idx, scores = check_box_inputs([[1, 2, 30, 40], [5, 6, 7, 8]], [3, 4], None, None, 2, {3: 0, 4: 0})
+    assert boxes.dtype == np.float64 and boxes.shape == (2, 4)
+    assert ids == [3, 4] and idx == [0, 0] and scores == [1.0, 1.0]
+    with pytest.raises(ValueError, match="2 boxes but 1 obj_ids"):
+        check_box_inputs([[1, 2, 30, 40], [5, 6, 7, 8]], [3], None, None, 1, {3: 0})
+    with pytest.raises(ValueError, match=r"image_index out of range \[0, 1\)"):
+        check_box_inputs([[1, 2, 30, 40]], [3], [1], None, 1, {3: 0})
+
+    class Custom(ValueError):
+        pass
+
+    with pytest.raises(Custom, match=r"track: the KPD has no keypoints for object\(s\) \[9\]"):
+        check_box_inputs([[1, 2, 30, 40]], [9], None, [0.5], 1, {3: 0}, error=Custom, where="track")

@@ -19,6 +19,7 @@ from typing import Any
 import numpy as np
 
 __all__ = [
+    "check_box_inputs",
     "CV_TO_GL",
     "LINEMOD_IMAGE_SIZE",
     "LINEMOD_K",
@@ -415,6 +416,28 @@ def box_problem(box, width: int, height: int, min_size: float = MIN_BOX_PX) -> s
     if x >= width or y >= height or x + w <= 0 or y + h <= 0:
         return f"degenerate box {shown} (x, y, w, h): outside the {width}x{height} image"
     return ""
+
+
+def check_box_inputs(boxes, obj_ids, image_index, scores, num_images: int, known_ids,
+                     error: type[Exception] = ValueError, where: str = "predict_boxes"):
+    """Given boxes for a pose pipeline: ``boxes`` (N, 4) xywh -> float64 (N, 4); ``obj_ids`` (N,);
+    ``image_index`` (N,) in [0, num_images) (None: all 0); ``scores`` (N,) (None: all 1). Returns
+    ``(boxes, obj_ids, image_index, scores)`` (the last three as lists); ``error`` names a length
+    mismatch, an index out of range or an object not in ``known_ids``."""
+    boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    N = boxes.shape[0]
+    obj_ids = [int(o) for o in np.asarray(obj_ids).reshape(-1)]
+    img_idx = [0] * N if image_index is None else [int(b) for b in np.asarray(image_index).reshape(-1)]
+    scores = [1.0] * N if scores is None else [float(v) for v in np.asarray(scores).reshape(-1)]
+    if not (len(obj_ids) == len(img_idx) == len(scores) == N):
+        raise error(f"{where}: {N} boxes but {len(obj_ids)} obj_ids, {len(img_idx)} image indices "
+                    f"and {len(scores)} scores")
+    if any(not 0 <= b < num_images for b in img_idx):
+        raise error(f"{where}: image_index out of range [0, {num_images})")
+    unknown = sorted(set(obj_ids) - {int(o) for o in known_ids})
+    if unknown:
+        raise error(f"{where}: the KPD has no keypoints for object(s) {unknown}")
+    return boxes, obj_ids, img_idx, scores
 
 
 def check_intrinsics(K, n: int, error: type[Exception] = ValueError) -> np.ndarray:

@@ -37,7 +37,7 @@ from typing import Any
 import numpy as np
 import torch
 
-from kpd6d.geometry import MIN_BOX_PX, box_problem, check_intrinsics
+from kpd6d.geometry import MIN_BOX_PX, box_problem, check_box_inputs, check_intrinsics
 from kpd6d.io import stack_rgb_images
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
@@ -215,19 +215,8 @@ class PosePipeline:
         t0 = time.perf_counter()
         x = self._images(images)
         Ks = _check_K(K, x.shape[0])
-        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-        N = boxes.shape[0]
-        obj_ids = [int(o) for o in np.asarray(obj_ids).reshape(-1)]
-        img_idx = [0] * N if image_index is None else [int(b) for b in np.asarray(image_index).reshape(-1)]
-        scores = [1.0] * N if scores is None else [float(s) for s in np.asarray(scores).reshape(-1)]
-        if not (len(obj_ids) == len(img_idx) == len(scores) == N):
-            raise PipelineInputError(f"predict_boxes: {N} boxes but {len(obj_ids)} obj_ids, {len(img_idx)} image "
-                                     f"indices and {len(scores)} scores")
-        if any(not 0 <= b < x.shape[0] for b in img_idx):
-            raise PipelineInputError(f"predict_boxes: image_index out of range [0, {x.shape[0]})")
-        unknown = sorted({o for o in obj_ids} - {int(o) for o in self.kpd.keypoints_3d})
-        if unknown:
-            raise PipelineInputError(f"predict_boxes: the KPD has no keypoints for object(s) {unknown}")
+        boxes, obj_ids, img_idx, scores = check_box_inputs(boxes, obj_ids, image_index, scores, x.shape[0],
+                                                           self.kpd.keypoints_3d, error=PipelineInputError)
         out = self._estimate(x, Ks, boxes.tolist(), img_idx, obj_ids, scores)
         self.last_timings["detect"] = 0.0
         self.last_timings["total"] = time.perf_counter() - t0

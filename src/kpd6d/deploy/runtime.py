@@ -38,6 +38,7 @@ from kpd6d.geometry import (
     affine_apply,
     bbox_from_points,
     box_to_crop_affine,
+    check_box_inputs,
     check_intrinsics,
     invert_affine,
     project_points,
@@ -282,19 +283,8 @@ class RuntimePipeline:
         t0 = time.perf_counter()
         x = _images_to_float(images)
         Ks = _check_K(K, x.shape[0])
-        boxes = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-        N = boxes.shape[0]
-        obj_ids = [int(o) for o in np.asarray(obj_ids).reshape(-1)]
-        img_idx = [0] * N if image_index is None else [int(b) for b in np.asarray(image_index).reshape(-1)]
-        scores = [1.0] * N if scores is None else [float(v) for v in np.asarray(scores).reshape(-1)]
-        if not (len(obj_ids) == len(img_idx) == len(scores) == N):
-            raise ValueError(f"predict_boxes: {N} boxes but {len(obj_ids)} obj_ids, {len(img_idx)} image indices "
-                             f"and {len(scores)} scores")
-        if any(not 0 <= b < x.shape[0] for b in img_idx):
-            raise ValueError(f"predict_boxes: image_index out of range [0, {x.shape[0]})")
-        unknown = sorted(set(obj_ids) - {int(o) for o in self.kpd.keypoints_3d})
-        if unknown:
-            raise ValueError(f"predict_boxes: the KPD has no keypoints for object(s) {unknown}")
+        boxes, obj_ids, img_idx, scores = check_box_inputs(boxes, obj_ids, image_index, scores, x.shape[0],
+                                                           self.kpd.keypoints_3d)
         out = self._estimate(x, Ks, boxes.tolist(), img_idx, obj_ids, scores)
         self.last_timings["detect"] = 0.0
         self.last_timings["total"] = time.perf_counter() - t0

@@ -110,12 +110,12 @@ def test_one_pnp_setting_and_one_fallback_dataset_per_tool():
     assert renamed_overrides(["stage.kpd.generate.num_train=5", "stage.generate.obj_ids=[1]"]) == [
         "stage.kpd.generate is now data.generate (kpd6d-train; kpd6d-run: data.num_train, data.options, ...)",
         "stage.generate is now data.generate (kpd6d-train; kpd6d-run: data.num_train, data.options, ...)"]
-    with pytest.raises(ValueError, match="data.generate"):
+    with pytest.raises(ValueError, match=r"data\.generate"):
         check_stage_config(OmegaConf.create({"kpd": {"generate": {"num_train": 3}}}))
 
 
 def test_no_data_and_no_generate_node_is_a_clear_error(tmp_path):
     from kpd6d.synth.prepare import prepare_data
 
-    with pytest.raises(ValueError, match="data.generate"):
+    with pytest.raises(ValueError, match=r"data\.generate"):
         prepare_data(None, tmp_path, None, ["train", "val"])

@@ -144,7 +144,7 @@ def test_merge_refuses_shards_with_other_settings_or_counts(tmp_path, models_dir
     m.write_text(json.dumps({**d, "num_images": 8}))
     with pytest.raises(ShardMergeError, match=r"different num_images: shard 0: 7, shard 1: 7, shard 2: 8"):
         merge_shards(root, "train", N)
-    with pytest.raises(ValueError, match="shard must be in 0..num_shards-1"):
+    with pytest.raises(ValueError, match=r"shard must be in 0\.\.num_shards-1"):
         generate_dataset(root, models_dir, shard=3, num_shards=3, **_RUN)
     # a different shard count does not see these shards
     with pytest.raises(ShardMergeError, match="shard 0 of 2 has not finished"):
@@ -223,9 +223,9 @@ _TIMES = ("fps", "stage_seconds_per_frame")  # measured, never equal between two
 def _tiny_kpd_checkpoint(path: Path) -> Path:
     """An untrained KPD on the few-layer ``tiny`` backbone for test_evaluate's objects 1 and 2."""
     import torch
-    from test_evaluate import _keypoints
 
     from kpd6d.kpd.module import KPDModule
+    from test_evaluate import _keypoints
 
     torch.manual_seed(0)
     m = KPDModule(obj_ids=[1, 2], keypoints_3d=[_keypoints(1), _keypoints(2)], diameters=[103.9, 94.3],
@@ -238,10 +238,10 @@ def _tiny_kpd_checkpoint(path: Path) -> Path:
 def test_two_evaluation_shards_merged_are_the_single_job(tmp_path, monkeypatch, capsys, one_torch_thread):
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
-    from test_evaluate import make_dataset
 
     from kpd6d.config import config_dir
     from kpd6d.workflow import run_evaluation
+    from test_evaluate import make_dataset
 
     root, _, _ = make_dataset(tmp_path / "ds", n_frames=5, hidden=(3, 2))
     ckpt = _tiny_kpd_checkpoint(tmp_path / "kpd.ckpt")
@@ -281,10 +281,9 @@ def test_two_evaluation_shards_merged_are_the_single_job(tmp_path, monkeypatch, 
 
 
 def test_evaluation_merge_names_unfinished_shards_missing_and_duplicated_frames(tmp_path):
-    from test_evaluate import BoxKeyedKPD, _pipeline, make_dataset
-
     from kpd6d.data import BopDataset
     from kpd6d.evaluation.runner import ShardMergeError, evaluate
+    from test_evaluate import BoxKeyedKPD, _pipeline, make_dataset
 
     root, poses, K = make_dataset(tmp_path / "ds", n_frames=4)
     out = tmp_path / "run"

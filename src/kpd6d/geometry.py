@@ -19,7 +19,6 @@ from typing import Any
 import numpy as np
 
 __all__ = [
-    "check_box_inputs",
     "CV_TO_GL",
     "LINEMOD_IMAGE_SIZE",
     "LINEMOD_K",
@@ -30,6 +29,7 @@ __all__ = [
     "bbox_from_points",
     "box_problem",
     "box_to_crop_affine",
+    "check_box_inputs",
     "check_intrinsics",
     "compose_poses",
     "cv_pose_to_gl_camera_pose",

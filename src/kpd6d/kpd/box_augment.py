@@ -16,8 +16,6 @@ from collections.abc import Mapping
 
 import numpy as np
 
-from kpd6d.registry import BOX_AUGMENTS
-
 from kpd6d.box_errors import (
     STATS_FORMAT,
     BoxErrorStatsError,
@@ -28,6 +26,7 @@ from kpd6d.box_errors import (
     save_box_error_stats,
     validate_box_error_stats,
 )
+from kpd6d.registry import BOX_AUGMENTS
 
 __all__ = [
     "BOX_AUGMENTS",

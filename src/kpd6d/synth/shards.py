@@ -83,7 +83,7 @@ def merge_shards(root: str | os.PathLike, split: str = "train", num_shards: int 
                             f"{root / INFO_FILE} records for split {split!r}")
     counts = {i: m.get("num_images") for i, m in markers.items()}
     if len(set(counts.values())) > 1:
-        problems.append(f"the shards were generated with different num_images: "
+        problems.append("the shards were generated with different num_images: "
                         + ", ".join(f"shard {i}: {n}" for i, n in sorted(counts.items())))
     if problems:
         raise ShardMergeError(_message(root, split, problems))

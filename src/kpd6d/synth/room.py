@@ -78,17 +78,15 @@ def textured_box(lo, hi, image: np.ndarray, bottom: bool = False):
     """The axis-aligned box [lo, hi] (table frame) with every face showing ``image``, faces outwards;
     the bottom face is left out unless ``bottom`` (a box standing on the floor never shows it)."""
     lo, hi = np.asarray(lo, np.float64), np.asarray(hi, np.float64)
-    d = hi - lo
-    c = (lo + hi) / 2
-    ex, ey, ez = np.diag(d)
+    edges = np.diag(hi - lo)  # the box's three edge vectors
+    c, far = (lo + hi) / 2, 10.0 * float((hi - lo).max())
     quads = []
-    for axis, (e1, e2) in enumerate(((ey, ez), (ex, ez), (ex, ey))):
+    for axis, (e1, e2) in enumerate(((edges[1], edges[2]), (edges[0], edges[2]), (edges[0], edges[1]))):
         for side in (0, 1):
             if axis == 2 and side == 0 and not bottom:
                 continue
-            corner = lo + side * np.diag(d)[axis]
-            out = c + (2 * side - 1) * 10.0 * np.diag(d)[axis] / max(d[axis], 1e-9) * max(d)
-            quads.append(_facing(corner, e1, e2, out))
+            outward = c + (2 * side - 1) * far * np.eye(3)[axis]  # a point outside this face
+            quads.append(_facing(lo + side * edges[axis], e1, e2, outward))
     return _quads_mesh(quads, image)
 
 

@@ -63,6 +63,18 @@ class BoxErrorCollector:
             self.gt.append(torch.as_tensor(gt_boxes).reshape(-1, 4)[g].double().cpu().numpy())
             self.ids.append(torch.as_tensor(gt_ids).reshape(-1)[g].cpu().numpy())
 
+    def gather(self) -> None:
+        """Under DDP: replace this rank's pairs with every rank's (in rank order) so that :meth:`stats`
+        sees all of them; nothing happens in one process."""
+        from kpd6d.distributed import all_gather_objects
+
+        parts = all_gather_objects((self.gt, self.pred, self.ids, self.num_gt))
+        if len(parts) > 1:
+            self.gt = [a for p in parts for a in p[0]]
+            self.pred = [a for p in parts for a in p[1]]
+            self.ids = [a for p in parts for a in p[2]]
+            self.num_gt = int(sum(p[3] for p in parts))
+
     @property
     def num_matched(self) -> int:
         return int(sum(len(x) for x in self.gt))

@@ -19,15 +19,22 @@ class DetectionEvaluator:
     def __init__(self, stats_score_threshold: float = 0.1, box_stats_iou: float = 0.5, per_object: bool = False) -> None:
         from torchmetrics.detection import MeanAveragePrecision
 
-        self.map = MeanAveragePrecision(box_format="xywh", iou_type="bbox", backend="pycocotools")
+        # torchmetrics' own DDP sync is off: compute() gathers the boxes itself (an empty list state on
+        # one rank makes torchmetrics skip a collective the others run)
+        self.map = MeanAveragePrecision(box_format="xywh", iou_type="bbox", backend="pycocotools",
+                                        sync_on_compute=False)
         # per_object: AP@0.5 of each object id as well (a second, single-threshold AP with class metrics)
         self.map50 = (MeanAveragePrecision(box_format="xywh", iou_type="bbox", backend="pycocotools",
-                                           iou_thresholds=[0.5], class_metrics=True) if per_object else None)
+                                           iou_thresholds=[0.5], class_metrics=True, sync_on_compute=False)
+                      if per_object else None)
+        self._preds: list[dict] = []
+        self._gts: list[dict] = []
         self.errors = BoxErrorCollector(box_stats_iou)
         self.stats_score_threshold = float(stats_score_threshold)
 
     def reset(self) -> None:
         self.map.reset()
+        self._preds, self._gts = [], []
         if self.map50 is not None:
             self.map50.reset()
         self.errors.reset()
@@ -43,14 +50,24 @@ class DetectionEvaluator:
             gts.append({"boxes": gt_boxes.cpu(), "labels": gt_ids.cpu()})
             keep = d.scores >= self.stats_score_threshold
             self.errors.add(boxes[keep], d.obj_ids[keep], gt_boxes, gt_ids)
-        self.map.update(preds, gts)
-        if self.map50 is not None:
-            self.map50.update(preds, gts)
+        self._preds += preds
+        self._gts += gts
 
     def compute(self) -> dict:
         """``{"map_50", "map", "recall_at_iou", "num_gt", "box_stats"}`` (box_stats None without matches),
         and with ``per_object`` ``"ap50_per_object"``: {obj_id: AP@0.5} over the objects with ground truth."""
+        from kpd6d.distributed import all_gather_objects
+
+        parts = all_gather_objects((self._preds, self._gts))  # every rank's images (one process: its own)
+        preds = [p for part in parts for p in part[0]]
+        gts = [g for part in parts for g in part[1]]
+        self.map.reset()
+        self.map.update(preds, gts)
+        if self.map50 is not None:
+            self.map50.reset()
+            self.map50.update(preds, gts)
         res = self.map.compute()
+        self.errors.gather()
         stats = self.errors.stats()
         out = {"map_50": float(res["map_50"]), "map": float(res["map"]),
                "recall_at_iou": self.errors.num_matched / max(self.errors.num_gt, 1),

@@ -97,7 +97,8 @@ class DetectorModule(pl.LightningModule):
         self.aug_cfg = {**DEFAULT_AUGMENT, **(augment or {})}
         self.eval_score_threshold = float(eval_score_threshold)
         self.stats_path = stats_path
-        self._gen = torch.Generator().manual_seed(int(seed))
+        self._seed = int(seed)
+        self._gen = torch.Generator().manual_seed(self._seed)
         self.box_stats_iou = float(box_stats_iou)
         self.channels_last = bool(channels_last)
         if self.channels_last:  # NHWC convolutions: markedly faster on CPU (oneDNN), neutral elsewhere
@@ -119,6 +120,10 @@ class DetectorModule(pl.LightningModule):
         return self
 
     # -- training -----------------------------------------------------------------------------
+    def on_fit_start(self) -> None:
+        # under DDP each rank draws its own augmentations (rank 0, and a single process, keep ``seed``)
+        self._gen.manual_seed(self._seed + int(self.global_rank))
+
     def training_step(self, batch, batch_idx):
         images, targets = batch
         if self.aug_cfg["enabled"]:
@@ -158,7 +163,7 @@ class DetectorModule(pl.LightningModule):
         stats = res["box_stats"]
         if stats is not None and not self.trainer.sanity_checking:
             self.detector.box_stats = stats
-            if self.stats_path:
+            if self.stats_path and self.trainer.is_global_zero:  # one writer under DDP
                 from kpd6d.box_errors import save_box_error_stats
 
                 save_box_error_stats(self.stats_path, stats)

@@ -51,6 +51,7 @@ def train_detector(cfg: Any) -> Path:
 
     run_dir = run_dir_of(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
+    from kpd6d.distributed import EvalShardSampler
     from kpd6d.synth.prepare import prepare_data
 
     root = prepare_data(cfg.data.root, run_dir, to_plain(cfg.data.get("generate")), [cfg.data.train_split, cfg.data.val_split])
@@ -74,18 +75,21 @@ def train_detector(cfg: Any) -> Path:
     bs, workers = int(st.batch_size), int(st.num_workers)
     train_dl = DataLoader(train_ds, batch_size=bs, shuffle=True, num_workers=workers, collate_fn=collate_detection,
                           drop_last=len(train_ds) > bs, persistent_workers=workers > 0)
-    val_dl = (DataLoader(val_ds, batch_size=bs, shuffle=False, num_workers=workers, collate_fn=collate_detection)
-              if val_ds is not None else None)
+    val_dl = (DataLoader(val_ds, batch_size=bs, sampler=EvalShardSampler(val_ds), num_workers=workers,
+                         collate_fn=collate_detection) if val_ds is not None else None)
     trainer = build_trainer(run_dir, st.trainer, monitor="val/map_50" if val_dl is not None else "train/loss_epoch",
                             mode="max" if val_dl is not None else "min", ema_decay=st.ema_decay,
                             log_versions=False)
     t0 = time.time()
     fit(trainer, module, train_dl, val_dl, resume=bool(st.resume))
     wall = time.time() - t0
+    out = run_dir / "detector.pt"
+    if not trainer.is_global_zero:  # under DDP, rank 0 alone writes the exported detector and metrics.json
+        return out
     for cb in ema_callbacks(trainer):  # export the weight average
         cb.apply_to(module)
     det = module.detector.cpu().eval()
-    out = save_detector(det, run_dir / "detector.pt")
+    out = save_detector(det, out)
     write_metrics(run_dir, trainer, stage="detector", t0=t_start, detector=str(out), data_root=str(root),
                   obj_ids=det_cfg["obj_ids"], train_images=len(train_ds), val_images=len(val_ds) if val_ds is not None else 0,
                   train_wall_s=wall, **getattr(module, "last_metrics", {}))

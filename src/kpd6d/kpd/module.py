@@ -166,12 +166,18 @@ class KPDModule(pl.LightningModule):
 
     def heatmap_loss(self, pred: torch.Tensor, target: torch.Tensor, visibility: torch.Tensor | None) -> torch.Tensor:
         """MSE over heatmap pixels (paper); visibility-weighted: invisible keypoints weigh ``invisible_weight``."""
+        num, den = self._loss_terms(pred, target, visibility)
+        return self.loss_scale * num / den.clamp(min=1.0)
+
+    def _loss_terms(self, pred, target, visibility) -> tuple[torch.Tensor, torch.Tensor]:
+        """The loss as (weighted sum of per-keypoint MSEs, sum of weights): sums over samples, so that
+        validation can add them up across batches and processes."""
         se = (pred.float() - target.float()) ** 2
         per_kp = se.mean(dim=(-1, -2))  # (B, k)
         if self.visibility_weighted and visibility is not None:
             w = visibility.float() + self.invisible_weight * (1 - visibility.float())
-            return self.loss_scale * (per_kp * w).sum() / w.sum().clamp(min=1.0)
-        return self.loss_scale * per_kp.mean()
+            return (per_kp * w).sum(), w.sum()
+        return per_kp.sum(), per_kp.new_tensor(float(per_kp.numel()))
 
     def decode(self, heatmaps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Heatmaps → (keypoints (B, k, 2) crop px, confidences (B, k)): the codec's decoding."""
@@ -194,21 +200,40 @@ class KPDModule(pl.LightningModule):
         self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True, batch_size=images.shape[0])
         return loss
 
+    #: validation sums, in this order (reduced across processes at the epoch's end)
+    _VAL_SUMS = ("instances", "loss_num", "loss_den", "kp_err_px", "proj2d_acc_5px", "add_acc_0.1d", "pnp_fail_rate")
+
+    def on_validation_epoch_start(self) -> None:
+        self._val_sums = torch.zeros(len(self._VAL_SUMS), dtype=torch.float64)
+
     def validation_step(self, batch: Mapping[str, Any], batch_idx: int) -> None:
         images = batch["image"]
         B = images.shape[0]
         pred = self(images, batch["obj_index"])
         target = batch["heatmaps"] if "heatmaps" in batch else self.targets(batch["keypoints"])
-        self.log("val/loss", self.heatmap_loss(pred, target, batch["visibility"]), prog_bar=True, batch_size=B,
-                 sync_dist=True)
+        num, den = self._loss_terms(pred, target, batch["visibility"])
         from kpd6d.evaluation.kpd_metrics import keypoint_error_px
 
         kp_crop, conf = self.decode(pred)
         kp_err, kp_img = keypoint_error_px(kp_crop, batch["affine"], batch["keypoints_image"])
-        self.log("val/kp_err_px", kp_err.float(), prog_bar=True, batch_size=B, sync_dist=True)
         m = self.pose_metrics(kp_img, conf, batch["obj_id"], batch["K"], batch["R"], batch["t"])
-        for name, value in m.items():
-            self.log(f"val/{name}", value, prog_bar=name == "proj2d_acc_5px", batch_size=B, sync_dist=True)
+        # per-sample means times B: sums over samples (every sample has the same k keypoints)
+        self._val_sums += torch.tensor([B, float(num), float(den), float(kp_err) * B, m["proj2d_acc_5px"] * B,
+                                        m["add_acc_0.1d"] * B, m["pnp_fail_rate"] * B], dtype=torch.float64)
+
+    def on_validation_epoch_end(self) -> None:
+        """Means over every validation sample, summed across processes first: the same figures in one
+        process or under DDP (with :class:`kpd6d.distributed.EvalShardSampler`), for any batch size."""
+        from kpd6d.distributed import all_reduce_sum
+
+        s = dict(zip(self._VAL_SUMS, all_reduce_sum(self._val_sums).tolist()))
+        n = max(s.pop("instances"), 1.0)
+        num, den = s.pop("loss_num"), s.pop("loss_den")
+        values = {"loss": self.loss_scale * num / max(den, 1.0), **{k: v / n for k, v in s.items()}}
+        self.val_metrics = values
+        for name, value in values.items():  # equal on every rank; sync_dist only keeps Lightning quiet
+            self.log(f"val/{name}", float(value), prog_bar=name in ("loss", "kp_err_px", "proj2d_acc_5px"),
+                     sync_dist=True)
 
     def pose_metrics(self, kp_img, conf, obj_ids, K, R_gt, t_gt) -> dict[str, float]:
         """top-l + PnP per instance (the checkpoint's ``pnp`` and ``top_l``) →

@@ -91,12 +91,17 @@ def train_kpd(cfg) -> Path:
     loader_kw = dict(batch_size=int(k.batch_size), num_workers=nw, persistent_workers=nw > 0, pin_memory=False)
     train_loader = torch.utils.data.DataLoader(train_ds, shuffle=True, drop_last=len(train_ds) > int(k.batch_size),
                                                **loader_kw)
-    val_loader = torch.utils.data.DataLoader(val_ds, shuffle=False, **loader_kw) if val_ds is not None else None
+    from kpd6d.distributed import EvalShardSampler
+
+    val_loader = (torch.utils.data.DataLoader(val_ds, sampler=EvalShardSampler(val_ds), **loader_kw)
+                  if val_ds is not None else None)  # every sample once under DDP (no padding)
 
     trainer = build_trainer(run_dir, k.trainer, monitor="val/proj2d_acc_5px" if val_ds is not None else "train/loss_epoch",
                             mode="max" if val_ds is not None else "min", ema_decay=k.get("ema_decay"),
                             progress_refresh=int(k.get("progress_refresh", 1)))
     fit(trainer, module, train_loader, val_loader, resume=bool(k.get("resume", True)))
+    if not trainer.is_global_zero:  # under DDP, rank 0 alone writes metrics.json
+        return run_dir
     write_metrics(run_dir, trainer, stage="kpd", t0=t0, data_root=str(root), obj_ids=train_ds.obj_ids,
                   train_instances=len(train_ds), val_instances=len(val_ds) if val_ds is not None else 0)
     return run_dir

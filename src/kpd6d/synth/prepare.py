@@ -7,6 +7,7 @@ write data through :func:`kpd6d.synth.generate_dataset` by way of these two func
 
 from __future__ import annotations
 
+import contextlib
 from collections.abc import Callable, Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -25,14 +26,35 @@ def generate_splits(root: str | Path, splits: Sequence[tuple[str, int, int]], *,
 
     root = Path(root)
     opts = dict(to_plain(options) or {})
-    for split, n, seed in splits:
-        if not split or not n:
-            continue
-        if log is not None:
-            log(f"generating {int(n)} {split} images into {root}")
-        generate_dataset(root, models_dir=models_dir, obj_ids=to_plain(obj_ids), num_images=int(n), split=split,
-                         seed=int(seed), workers=int(workers), progress=progress, **opts)
+    with _exclusive(root.parent / f".{root.name}.generate.lock"):  # beside the dataset, not in it
+        for split, n, seed in splits:
+            if not split or not n:
+                continue
+            if log is not None:
+                log(f"generating {int(n)} {split} images into {root}")
+            generate_dataset(root, models_dir=models_dir, obj_ids=to_plain(obj_ids), num_images=int(n), split=split,
+                             seed=int(seed), workers=int(workers), progress=progress, **opts)
     return root
+
+
+@contextlib.contextmanager
+def _exclusive(lock_path: Path):
+    """One process at a time generates into a root (the others wait, then find it complete): the
+    processes of a DDP run all prepare the same data. An advisory ``flock``, released when its holder
+    exits or dies, so a crashed process never leaves the others waiting (local file systems; on a
+    shared one, generate first: ``kpd6d-generate``, then ``data.root=``)."""
+    lock_path.parent.mkdir(parents=True, exist_ok=True)
+    with open(lock_path, "a") as fh:
+        try:
+            import fcntl
+        except ImportError:  # pragma: no cover - not POSIX: no lock
+            yield
+            return
+        fcntl.flock(fh, fcntl.LOCK_EX)
+        try:
+            yield
+        finally:
+            fcntl.flock(fh, fcntl.LOCK_UN)
 
 
 def prepare_data(data_root: str | None, run_dir: str | Path, generate: Mapping[str, Any],

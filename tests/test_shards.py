@@ -198,6 +198,32 @@ def test_the_documented_multirun_makes_the_shards_and_merge_true_merges_them(tmp
     slurm = (config_dir() / "hydra" / "launcher" / "slurm_cpu.yaml").read_text()
     assert "submitit_slurm" in slurm and "array_parallelism" in slurm
 
+@pytest.mark.slow
+def test_the_documented_multirun_runs_with_the_joblib_launcher(tmp_path, models_dir, reference):
+    """docs/scale-out.md's command as written: ``-m ... shard=0,1,2 num_shards=3
+    hydra/launcher=local_parallel hydra.launcher.n_jobs=3`` (three joblib processes), then the merge;
+    the merged annotations and images are the single job's bytes (but dataset_info.json, as above)."""
+    import os
+    import subprocess
+    import sys
+
+    root = tmp_path / "data"
+    exe = [sys.executable, "-m", "kpd6d.cli.generate"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    res = subprocess.run([*exe, "-m", f"out_dir={root}", *_tiny_cli_options(models_dir), "shard=0,1,2", "num_shards=3",
+                          "hydra/launcher=local_parallel", "hydra.launcher.n_jobs=3",
+                          f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+                         cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "Joblib.Parallel(n_jobs=3" in res.stdout + res.stderr  # the joblib launcher ran the shards
+    res = subprocess.run([*exe, f"out_dir={root}", "num_shards=3", "merge=true", f"hydra.run.dir={tmp_path / 'merge'}"],
+                         cwd=tmp_path, capture_output=True, text=True, env=env, timeout=120)
+    assert res.returncode == 0, res.stderr[-3000:]
+    got = _dataset_files(root)
+    assert set(got) == set(reference)
+    assert [n for n in reference if got[n] != reference[n]] == ["dataset_info.json"]
+
+
 # ---------------------------------------------------------------------------------------------
 # sharded evaluation
 # ---------------------------------------------------------------------------------------------

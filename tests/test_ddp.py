@@ -178,3 +178,9 @@ def test_detector_stage_under_ddp_matches_one_process(tmp_path):
                enable_progress_bar=False).validate(module, loader, verbose=False)
     for name in ("map_50", "map", "recall_at_iou"):
         assert np.isclose(summary["final_metrics"][f"val/{name}"], module.last_metrics[name], atol=1e-6), name
+
+    # resume under DDP: the rerun restores last.ckpt and trains the third epoch only
+    res = _train(tmp_path, run, args[:-len(_ddp_args("", 2))] + _ddp_args("stage", 3))
+    assert "Restoring states from the checkpoint" in res.stdout + res.stderr
+    summary3 = json.loads((run / "metrics.json").read_text())
+    assert summary3["epochs"] == 3 and summary3["global_step"] == 3 * summary["global_step"] // 2

@@ -306,6 +306,46 @@ def test_two_evaluation_shards_merged_are_the_single_job(tmp_path, monkeypatch, 
         _evaluate_cli(monkeypatch, *common, "shard=1", "num_shards=2", f"hydra.run.dir={tmp_path / 'h2'}")
 
 
+@pytest.mark.slow
+def test_the_documented_evaluation_multirun_runs_with_the_joblib_launcher(tmp_path, one_torch_thread):
+    """docs/scale-out.md's ``kpd6d-evaluate -m ... out_dir=... shard=0,1 num_shards=2
+    hydra/launcher=local_parallel`` and the merge, as written (subprocesses), = the single job."""
+    import os
+    import subprocess
+    import sys
+
+    from hydra import compose, initialize_config_dir
+    from omegaconf import OmegaConf
+
+    from kpd6d.config import config_dir
+    from kpd6d.workflow import run_evaluation
+    from test_evaluate import make_dataset
+
+    root, _, _ = make_dataset(tmp_path / "ds", n_frames=5, hidden=(3, 2))
+    ckpt = _tiny_kpd_checkpoint(tmp_path / "kpd.ckpt")
+    common = [f"data.root={root}", f"kpd_ckpt={ckpt}", "detector_ckpt=oracle", "device=cpu", "progress=false",
+              "overlays=0", "pnp=epnp_ransac", "select.top_l=8", "batch_size=2"]
+    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
+        cfg = compose("evaluate", overrides=common)
+    one, many = tmp_path / "one", tmp_path / "many"
+    run_evaluation(OmegaConf.merge(cfg, {"out_dir": str(one)}), one)
+    exe = [sys.executable, "-m", "kpd6d.cli.evaluate"]
+    env = dict(os.environ, OMP_NUM_THREADS="1")
+    res = subprocess.run([*exe, "-m", *common, f"out_dir={many}", "shard=0,1", "num_shards=2",
+                          "hydra/launcher=local_parallel", f"hydra.sweep.dir={tmp_path / 'sweep'}"],
+                         cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    assert "Joblib.Parallel(n_jobs=" in res.stdout + res.stderr
+    res = subprocess.run([*exe, *common, f"out_dir={many}", "num_shards=2", "merge=true",
+                          f"hydra.run.dir={tmp_path / 'merge'}"], cwd=tmp_path, capture_output=True, text=True,
+                         env=env, timeout=300)
+    assert res.returncode == 0, res.stderr[-3000:]
+    rows = _rows(one / "results.csv")
+    assert rows and _rows(many / "results.csv") == rows
+    a, b = (json.loads((d / "metrics.json").read_text()) for d in (one, many))
+    assert {k: v for k, v in a.items() if k not in _TIMES} == {k: v for k, v in b.items() if k not in _TIMES}
+
+
 def test_evaluation_merge_names_unfinished_shards_missing_and_duplicated_frames(tmp_path):
     from kpd6d.data import BopDataset
     from kpd6d.evaluation.runner import ShardMergeError, evaluate

@@ -261,7 +261,9 @@ def _tiny_kpd_checkpoint(path: Path) -> Path:
     return path
 
 
-def test_two_evaluation_shards_merged_are_the_single_job(tmp_path, monkeypatch, capsys, one_torch_thread):
+def _evaluation_setup(tmp_path: Path, overlays: int):
+    """test_evaluate's 5-frame dataset, an untrained tiny KPD and the evaluate overrides for both;
+    returns ``(overrides, run)`` where ``run(out, **settings)`` is the single (or sharded) job."""
     from hydra import compose, initialize_config_dir
     from omegaconf import OmegaConf
 
@@ -272,12 +274,18 @@ def test_two_evaluation_shards_merged_are_the_single_job(tmp_path, monkeypatch, 
     root, _, _ = make_dataset(tmp_path / "ds", n_frames=5, hidden=(3, 2))
     ckpt = _tiny_kpd_checkpoint(tmp_path / "kpd.ckpt")
     common = [f"data.root={root}", f"kpd_ckpt={ckpt}", "detector_ckpt=oracle", "device=cpu", "progress=false",
-              "overlays=1", "pnp=epnp_ransac", "select.top_l=8", "batch_size=2"]
+              f"overlays={overlays}", "pnp=epnp_ransac", "select.top_l=8", "batch_size=2"]
     with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
         cfg = compose("evaluate", overrides=common)
 
     def run(out, **kw):
         return run_evaluation(OmegaConf.merge(cfg, {"out_dir": str(out), **kw}), out)
+
+    return common, run
+
+
+def test_two_evaluation_shards_merged_are_the_single_job(tmp_path, monkeypatch, capsys, one_torch_thread):
+    common, run = _evaluation_setup(tmp_path, overlays=1)
 
     one, many = tmp_path / "one", tmp_path / "many"
     run(one)
@@ -314,21 +322,9 @@ def test_the_documented_evaluation_multirun_runs_with_the_joblib_launcher(tmp_pa
     import subprocess
     import sys
 
-    from hydra import compose, initialize_config_dir
-    from omegaconf import OmegaConf
-
-    from kpd6d.config import config_dir
-    from kpd6d.workflow import run_evaluation
-    from test_evaluate import make_dataset
-
-    root, _, _ = make_dataset(tmp_path / "ds", n_frames=5, hidden=(3, 2))
-    ckpt = _tiny_kpd_checkpoint(tmp_path / "kpd.ckpt")
-    common = [f"data.root={root}", f"kpd_ckpt={ckpt}", "detector_ckpt=oracle", "device=cpu", "progress=false",
-              "overlays=0", "pnp=epnp_ransac", "select.top_l=8", "batch_size=2"]
-    with initialize_config_dir(config_dir=str(config_dir()), version_base="1.3"):
-        cfg = compose("evaluate", overrides=common)
+    common, run = _evaluation_setup(tmp_path, overlays=0)
     one, many = tmp_path / "one", tmp_path / "many"
-    run_evaluation(OmegaConf.merge(cfg, {"out_dir": str(one)}), one)
+    run(one)
     exe = [sys.executable, "-m", "kpd6d.cli.evaluate"]
     env = dict(os.environ, OMP_NUM_THREADS="1")
     res = subprocess.run([*exe, "-m", *common, f"out_dir={many}", "shard=0,1", "num_shards=2",

@@ -8,7 +8,8 @@ What both stages need so that DDP gives the numbers one process gives:
   Lightning leaves a loader alone that already has a ``DistributedSampler``, which this is.
 * :func:`all_reduce_sum` / :func:`all_gather_objects`: metric sums and lists of matched boxes
   reduced across ranks (identity in one process).
-* :func:`is_global_zero`: the one writer of files (exported models, statistics, metrics.json).
+* The one writer of files (exported models, statistics, metrics.json) is rank 0: the stages ask
+  their trainer (``trainer.is_global_zero``).
 
 Rank and world size are read when needed (samplers are built before Lightning starts the process
 group), from ``torch.distributed`` once it is initialised; before that every process is rank 0 of 1.
@@ -24,7 +25,7 @@ from typing import Any
 import torch
 from torch.utils.data import DistributedSampler
 
-__all__ = ["EvalShardSampler", "all_gather_objects", "all_reduce_sum", "is_global_zero", "rank_and_world"]
+__all__ = ["EvalShardSampler", "all_gather_objects", "all_reduce_sum", "rank_and_world"]
 
 
 def _initialised() -> bool:
@@ -36,11 +37,6 @@ def rank_and_world() -> tuple[int, int]:
     if _initialised():
         return torch.distributed.get_rank(), torch.distributed.get_world_size()
     return 0, 1
-
-
-def is_global_zero() -> bool:
-    """True in the process that writes files (rank 0, or the only process)."""
-    return rank_and_world()[0] == 0
 
 
 def all_reduce_sum(values: torch.Tensor) -> torch.Tensor:

@@ -302,3 +302,90 @@ def test_pretrained_values_other_than_imagenet_or_a_file_are_errors(tmp_path):
         create_timm_model("efficientnet_lite0", pretrained="imagenet1k")
     with pytest.raises(Exception, match=r"nothing\.pth"):  # a path is a local weights file, which must exist
         BACKBONES.build("efficientnet_lite0", pretrained=str(tmp_path / "nothing.pth"))
+
+
+def _names_frozen(module: torch.nn.Module) -> set[str]:
+    return {n for n, p in module.named_parameters() if not p.requires_grad}
+
+
+def test_freeze_stages_freezes_the_stem_and_the_first_n_stages_of_each_backbone_kind():
+    from kpd6d.finetune import apply_freeze_stages, feature_module_names
+
+    # timm EfficientNet features (the packaged backbones): stride 2, 4, 8, 16, 32 come from blocks 0, 1, 2, 4, 6
+    lite = BACKBONES.build("efficientnet_lite0", pretrained=None)
+    assert feature_module_names(lite) == ["body.blocks.0", "body.blocks.1", "body.blocks.2", "body.blocks.4",
+                                          "body.blocks.6"]
+    n = apply_freeze_stages(lite, 3)
+    frozen = _names_frozen(lite)
+    assert n == sum(p.numel() for name, p in lite.named_parameters() if name in frozen)
+    prefixes = {name.split(".")[1] if not name.startswith("body.blocks.") else ".".join(name.split(".")[1:3])
+                for name in frozen}
+    assert prefixes == {"conv_stem", "bn1", "blocks.0", "blocks.1", "blocks.2"}
+    # an independent count: everything registered before blocks.3
+    expected = [name for name, _ in lite.named_parameters()]
+    expected = expected[: next(i for i, name in enumerate(expected) if name.startswith("body.blocks.3."))]
+    assert frozen == set(expected)
+    # a timm FeatureListNet (ResNet: the first feature comes from act1, which has no weights)
+    resnet = create_timm_model("resnet10t", features_only=True)
+    apply_freeze_stages(resnet, 2)
+    assert {name.split(".")[0] for name in _names_frozen(resnet)} == {"conv1", "bn1", "layer1"}
+    # -1 and n >= the number of stages: the whole backbone; 0: nothing
+    for n_stages in (-1, 5, 9):
+        tiny = BACKBONES.build("tiny", width=4)
+        apply_freeze_stages(tiny, n_stages)
+        assert all(not p.requires_grad for p in tiny.parameters())
+    tiny = BACKBONES.build("tiny", width=4)
+    assert apply_freeze_stages(tiny, 0) == 0 and all(p.requires_grad for p in tiny.parameters())
+
+
+def test_freeze_stages_in_training_no_gradient_no_statistics_no_optimiser_slot():
+    from kpd6d.finetune import finetune_config
+    from kpd6d.kpd.module import KPDModule
+
+    rng = np.random.default_rng(2)
+    module = KPDModule(obj_ids=[1], keypoints_3d=[rng.uniform(-30, 30, (4, 3))], diameters=[80.0],
+                       backbone={"name": "tiny", "width": 8}, head={"name": "fpn", "fpn_channels": 8},
+                       input_size=32, out_stride=4, optimizer={"name": "adam", "lr": 1e-3},
+                       finetune={"freeze_stages": 2})
+    stages = module.net.backbone.stages
+    assert all(not p.requires_grad for s in stages[:2] for p in s.parameters())
+    assert all(p.requires_grad for s in stages[2:] for p in s.parameters())
+    opt = module.configure_optimizers()
+    in_opt = {id(p) for g in opt.param_groups for p in g["params"]}
+    assert in_opt == {id(p) for p in module.parameters() if p.requires_grad}
+    module.train()
+    bn = {i: [m for m in s.modules() if isinstance(m, torch.nn.BatchNorm2d)] for i, s in enumerate(stages)}
+    assert not any(m.training for i in (0, 1) for m in bn[i]) and all(m.training for m in bn[2])
+    before = {i: [m.running_mean.clone() for m in bn[i]] for i in bn}
+    out = module.net(torch.rand(4, 3, 32, 32))
+    out.float().square().mean().backward()
+    for i in (0, 1):  # frozen: no gradient, statistics kept
+        assert all(p.grad is None for p in stages[i].parameters())
+        assert all(torch.equal(a, m.running_mean) for a, m in zip(before[i], bn[i]))
+    assert all(p.grad is not None for p in stages[2].parameters())
+    assert not any(torch.equal(a, m.running_mean) for a, m in zip(before[2], bn[2]))
+    # the checkpoint's hyper-parameters record it; bad values name the key
+    assert module.hparams.finetune["freeze_stages"] == 2
+    for bad in ("abc", -2, True, 1.5):
+        with pytest.raises(ValueError, match="stage.kpd.finetune.freeze_stages must be an integer"):
+            finetune_config({"freeze_stages": bad}, "stage.kpd.finetune")
+
+
+def test_detector_freeze_stages():
+    from kpd6d.detection.module import DetectorModule
+
+    module = DetectorModule({"name": "centernet", "obj_ids": [1], "backbone": "resnet10t", "input_size": [64, 48]},
+                            optimizer={"name": "adamw", "lr": 1e-3, "schedule": "constant"},
+                            finetune={"freeze_stages": 2})
+    bb = module.detector.backbone
+    assert {n.split(".")[0] for n in _names_frozen(bb)} == {"conv1", "bn1", "layer1"}
+    assert not _names_frozen(module.detector) - {f"backbone.{n}" for n in _names_frozen(bb)}
+    params = module.configure_optimizers()["optimizer"].param_groups[0]["params"]
+    assert {id(p) for p in params} == {id(p) for p in module.parameters() if p.requires_grad}
+    module.train()
+    def bns(m):
+        return [b for b in m.modules() if isinstance(b, torch.nn.BatchNorm2d)]
+
+    assert not any(b.training for b in bns(bb.bn1) + bns(bb.layer1)) and all(b.training for b in bns(bb.layer2))
+    with pytest.raises(ValueError, match="freeze_stages cannot apply"):
+        DetectorModule({"name": "fcos", "obj_ids": [1], "input_size": [64, 48]}, finetune={"freeze_stages": 1})

@@ -103,9 +103,14 @@ class DetectorModule(pl.LightningModule):
         self.channels_last = bool(channels_last)
         if self.channels_last:  # NHWC convolutions: markedly faster on CPU (oneDNN), neutral elsewhere
             self.detector.to(memory_format=torch.channels_last)
-        if (self.finetune["backbone_lr_mult"] != 1.0 or self.finetune["freeze_bn"]) and self._backbone() is None:
+        ft = self.finetune
+        if (ft["backbone_lr_mult"] != 1.0 or ft["freeze_bn"] or ft["freeze_stages"]) and self._backbone() is None:
             raise ValueError(f"stage.finetune: detector {detector.get('name')!r} exposes no .backbone module, so "
-                             "backbone_lr_mult / freeze_bn cannot apply to it")
+                             "backbone_lr_mult / freeze_bn / freeze_stages cannot apply to it")
+        if ft["freeze_stages"]:
+            from kpd6d.finetune import apply_freeze_stages
+
+            apply_freeze_stages(self._backbone(), ft["freeze_stages"])
 
     def _backbone(self):
         bb = getattr(self.detector, "backbone", None)
@@ -113,10 +118,10 @@ class DetectorModule(pl.LightningModule):
 
     def train(self, mode: bool = True):
         super().train(mode)
-        if mode and self.finetune["freeze_bn"]:
-            from kpd6d.finetune import apply_freeze_bn
+        if mode and self._backbone() is not None:
+            from kpd6d.finetune import apply_train_mode
 
-            apply_freeze_bn(self._backbone())  # keep the pretrained BatchNorm statistics
+            apply_train_mode(self._backbone(), self.finetune)  # keep the pretrained BatchNorm statistics
         return self
 
     # -- training -----------------------------------------------------------------------------

@@ -22,7 +22,7 @@ import numpy as np
 import pytorch_lightning as pl
 import torch
 
-from kpd6d.finetune import apply_freeze_bn, param_groups
+from kpd6d.finetune import apply_freeze_stages, apply_train_mode, param_groups
 from kpd6d.geometry import affine_apply, invert_affine
 from kpd6d.io import to_plain
 from kpd6d.kpd.checkpoint import kpd_hparams
@@ -83,6 +83,7 @@ class KPDModule(pl.LightningModule):
         # the checkpoint records the backbone's input normalisation, so it predicts the same even if a
         # default changes (and never needs the pretrained weights again: see load_checkpoint)
         hp.backbone = {**hp.backbone, "mean": self.net.mean.flatten().tolist(), "std": self.net.std.flatten().tolist()}
+        apply_freeze_stages(self.net.backbone, hp.finetune["freeze_stages"])
         if hp.channels_last:  # NHWC convolutions: markedly faster on CPU (oneDNN), neutral elsewhere
             self.net.to(memory_format=torch.channels_last)
         self.augment = None
@@ -264,8 +265,8 @@ class KPDModule(pl.LightningModule):
 
     def train(self, mode: bool = True):
         super().train(mode)
-        if mode and self.hparams.finetune["freeze_bn"]:
-            apply_freeze_bn(self.net.backbone)  # keep the pretrained BatchNorm statistics
+        if mode:
+            apply_train_mode(self.net.backbone, self.hparams.finetune)  # keep the pretrained BatchNorm statistics
         return self
 
     # -- inference -------------------------------------------------------------------------------

@@ -367,7 +367,7 @@ def test_freeze_stages_in_training_no_gradient_no_statistics_no_optimiser_slot()
     # the checkpoint's hyper-parameters record it; bad values name the key
     assert module.hparams.finetune["freeze_stages"] == 2
     for bad in ("abc", -2, True, 1.5):
-        with pytest.raises(ValueError, match="stage.kpd.finetune.freeze_stages must be an integer"):
+        with pytest.raises(ValueError, match=r"stage\.kpd\.finetune\.freeze_stages must be an integer"):
             finetune_config({"freeze_stages": bad}, "stage.kpd.finetune")
 
 

@@ -156,6 +156,25 @@ def test_numpy_ops_match_torch():
     crops, _ = inference_crops(img, torch.as_tensor(boxes), torch.zeros(3, dtype=torch.long), codec)
     mine = warp_affine_bilinear(img[0].permute(1, 2, 0).numpy(), codec.crop_affine(boxes), 32)
     np.testing.assert_allclose(mine, crops.numpy(), atol=1e-4)
+    # the separable path (scale + shift, the codec's crops) and the general one (here: a rotation)
+    # against kornia, on boxes inside, across and beyond the image's edges, at several sizes
+    import kornia
+
+    rng = np.random.default_rng(3)
+    for size in (32, (24, 40)):
+        for _ in range(8):
+            box = np.array([[*rng.uniform(-40, 80, 2), *rng.uniform(3, 60, 2)]])
+            for angle in (0.0, 0.3):
+                A = codec.crop_affine(box)
+                if angle:
+                    R = np.array([[np.cos(angle), -np.sin(angle), 0.0], [np.sin(angle), np.cos(angle), 0.0],
+                                  [0.0, 0.0, 1.0]])
+                    A = (R @ np.vstack([A[0], [0.0, 0.0, 1.0]]))[None, :2]
+                hw = (size, size) if isinstance(size, int) else size[::-1]
+                ref = kornia.geometry.transform.warp_affine(img, torch.as_tensor(A, dtype=torch.float32), hw,
+                                                            align_corners=True)
+                np.testing.assert_allclose(warp_affine_bilinear(img[0].permute(1, 2, 0).numpy(), A, size),
+                                           ref.numpy(), atol=1e-4, err_msg=f"{box} {angle} {size}")
     # peaked maps with noise: each decoder agrees with its torch twin within 0.01 heatmap px
     yy, xx = torch.meshgrid(torch.arange(16.0), torch.arange(16.0), indexing="ij")
     c = torch.rand(3, 4, 2, generator=g) * 12 + 2

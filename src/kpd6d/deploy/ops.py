@@ -47,6 +47,11 @@ def warp_affine_bilinear(image: np.ndarray, A: np.ndarray, size: int | tuple[int
     A = np.asarray(A, dtype=np.float64).reshape(-1, 2, 3)
     M = np.concatenate([A, np.broadcast_to([0.0, 0.0, 1.0], (len(A), 1, 3))], axis=1)
     Minv = np.linalg.inv(M)[:, :2]  # (N, 2, 3) crop -> image
+    if not np.any(Minv[:, 0, 1]) and not np.any(Minv[:, 1, 0]):  # scale + shift (the codec's crops): separable
+        out = np.empty((len(A), image.shape[2], h, w), dtype=np.float32)
+        for n in range(len(A)):
+            out[n] = _warp_separable(image, Minv[n], w, h)
+        return out
     u, v = np.meshgrid(np.arange(w, dtype=np.float64), np.arange(h, dtype=np.float64))
     sx = Minv[:, 0, 0, None, None] * u + Minv[:, 0, 1, None, None] * v + Minv[:, 0, 2, None, None]
     sy = Minv[:, 1, 0, None, None] * u + Minv[:, 1, 1, None, None] * v + Minv[:, 1, 2, None, None]
@@ -61,6 +66,31 @@ def warp_affine_bilinear(image: np.ndarray, A: np.ndarray, size: int | tuple[int
             vals = image[np.clip(yi, 0, H - 1), np.clip(xi, 0, W - 1)]  # (N, h, w, C)
             out += (wy * wx * inside)[..., None] * vals
     return np.ascontiguousarray(out.transpose(0, 3, 1, 2))
+
+
+def _linear_taps(a: float, b: float, n_out: int, n_in: int):
+    """Bilinear taps along one axis for output pixels ``i`` sampling input ``a * i + b``: the two
+    input indices (clipped) and their weights (0 for a neighbour outside ``[0, n_in)``)."""
+    src = a * np.arange(n_out, dtype=np.float64) + b
+    i0 = np.floor(src)
+    f = (src - i0).astype(np.float32)
+    i0 = i0.astype(np.int64)
+    i1 = i0 + 1
+    w0 = (np.float32(1.0) - f) * ((i0 >= 0) & (i0 < n_in))
+    w1 = f * ((i1 >= 0) & (i1 < n_in))
+    return np.clip(i0, 0, n_in - 1), np.clip(i1, 0, n_in - 1), w0.astype(np.float32), w1.astype(np.float32)
+
+
+def _warp_separable(image: np.ndarray, minv: np.ndarray, w: int, h: int) -> np.ndarray:
+    """One crop (C, h, w) for an axis-aligned crop → image map ``minv`` (2, 3): rows, then columns.
+    The same taps and weights as the general path (the product of the two axes' weights)."""
+    x0, x1, wx0, wx1 = _linear_taps(minv[0, 0], minv[0, 2], w, image.shape[1])
+    y0, y1, wy0, wy1 = _linear_taps(minv[1, 1], minv[1, 2], h, image.shape[0])
+    c_lo, c_hi = int(min(x0.min(), x1.min())), int(max(x0.max(), x1.max())) + 1
+    band = image[:, c_lo:c_hi]  # only the columns the crop reads
+    rows = band[y0] * wy0[:, None, None] + band[y1] * wy1[:, None, None]  # (h, cols, C)
+    out = rows[:, x0 - c_lo] * wx0[None, :, None] + rows[:, x1 - c_lo] * wx1[None, :, None]  # (h, w, C)
+    return out.transpose(2, 0, 1)
 
 
 def _aa_taps(n_in: int, n_out: int) -> tuple[np.ndarray, np.ndarray]:

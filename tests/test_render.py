@@ -132,3 +132,34 @@ def test_torchvision_ops_import_after_a_render_does_not_crash(tmp_path):
     """)
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, timeout=300)
     assert out.returncode == 0 and "survived" in out.stdout, out.stderr[-2000:]
+
+
+@pytest.mark.parametrize("kind", ["vertex", "face"])
+def test_mesh_colours_render_as_stored_under_unit_light(renderer, kind):
+    """Colours in meshes are sRGB-encoded: under unit ambient light (no other light) a flat patch
+    renders as its stored colour, and under ambient ``a`` as that colour times ``a ** (1 / 2.2)``
+    (the shader works in linear light and encodes with 1/2.2). Before the fix a stored 30 rendered as 96."""
+    from kpd6d.render import Lighting
+
+    rng = np.random.default_rng(0)
+    R, t = np.eye(3), np.array([0.0, 0.0, 900.0])
+    for _ in range(4):
+        c = rng.integers(5, 250, 3)
+        quad = trimesh_quad(c, kind)
+        for a in (1.0, 0.25):
+            rgb = renderer.render([(quad, R, t)], lighting=Lighting(ambient=(a, a, a), lights=[])).rgb
+            want = np.clip(c / 255.0 * a ** (1 / 2.2), 0, 1) * 255
+            np.testing.assert_allclose(rgb[120, 160].astype(float), want, atol=1.5, err_msg=f"{kind} {c} {a}")
+
+
+def trimesh_quad(color, kind: str):
+    import trimesh
+
+    quad = trimesh.Trimesh(vertices=[[-80, -80, 0], [80, -80, 0], [80, 80, 0], [-80, 80, 0]],
+                           faces=[[0, 2, 1], [0, 3, 2]], process=False)
+    rgba = np.array([*color, 255], dtype=np.uint8)
+    if kind == "vertex":
+        quad.visual.vertex_colors = np.tile(rgba, (4, 1))
+    else:
+        quad.visual.face_colors = np.tile(rgba, (2, 1))
+    return quad

@@ -34,7 +34,7 @@ import numpy as np  # noqa: E402
 
 from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K, cv_pose_to_gl_model_view  # noqa: E402
 
-__all__ = ["Light", "Lighting", "RenderResult", "Renderer"]
+__all__ = ["Light", "Lighting", "RenderResult", "Renderer", "linear_vertex_colors"]
 
 
 @dataclass
@@ -106,6 +106,23 @@ def _look_rotation(direction) -> np.ndarray:
     T = np.eye(4)
     T[:3, :3] = np.stack([x, y, z], axis=1)
     return T
+
+
+def linear_vertex_colors(colors: np.ndarray) -> np.ndarray:
+    """Vertex colours (n, 3|4), uint8 or float in [0, 1], as stored in meshes (sRGB-encoded, like
+    every photograph and scan) → the linear float32 values pyrender's shader expects.
+
+    pyrender's fragment shader linearises *textures* (``srgb_to_linear``) but multiplies the lit,
+    linear colour by the raw vertex colour and then encodes the result with ``pow(c, 1 / 2.2)``: a
+    vertex colour of 30/255 under unit light came out as 96/255, every scanned object pale and
+    washed out. Raising the RGB to the power 2.2 (the inverse of that encoding) makes a colour
+    under unit light come out as itself; alpha is kept.
+    """
+    c = np.asarray(colors)
+    c = (c / 255.0) if np.issubdtype(c.dtype, np.integer) else c.astype(np.float64)
+    out = np.array(c, dtype=np.float32)
+    out[..., :3] = np.power(np.clip(c[..., :3], 0.0, 1.0), 2.2)
+    return out
 
 
 class Renderer:
@@ -216,11 +233,15 @@ class Renderer:
 
         pyrender's own material is kept (it carries the vertex colours / texture; passing a material
         to ``from_trimesh`` would drop them); only its roughness changes, in place (a uniform, so no
-        re-upload): ``roughness = max(0.05, base - specular)`` (pyrender's base is 0.8).
+        re-upload): ``roughness = max(0.05, base - specular)`` (pyrender's base is 0.8). Vertex and
+        face colours are converted to linear values first (:func:`linear_vertex_colors`).
         """
         entry = self._cache.get(id(mesh))
         if entry is None:
             pm = self._pyrender.Mesh.from_trimesh(mesh, smooth=False)
+            for prim in pm.primitives:
+                if prim.color_0 is not None:  # vertex / face colours: sRGB in, linear for the shader
+                    prim.color_0 = linear_vertex_colors(prim.color_0)
             base = [getattr(p.material, "roughnessFactor", None) for p in pm.primitives]
             if len(self._cache) >= 256:
                 self._cache.clear()  # unused meshes then leave the GL context on the next render

@@ -47,6 +47,13 @@ def _pair(name: str, v: Any) -> tuple[float, float]:
     return a, b
 
 
+def photometric_settings(cfg: Mapping | None) -> dict:
+    """``cfg`` (PhotometricConfig fields, or {} / None for the defaults) validated and spelt out in full
+    as plain JSON values: the form SynthConfig holds and dataset_info.json records."""
+    pc = PhotometricConfig.from_mapping(dict(cfg or {}) if not isinstance(cfg, PhotometricConfig) else cfg)
+    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(pc).items()}
+
+
 @dataclass
 class SynthConfig:
     """All generator options; see docs/data.md for what each one does."""
@@ -160,8 +167,9 @@ class SynthConfig:
             if not isinstance(self.designator, Mapping) or "name" not in self.designator:
                 raise ValueError(f"designator must be a mapping with a 'name' key (or null), got {self.designator!r}")
             self.designator = dict(self.designator)
-        self.photometric = dict(self.photometric or {})
-        PhotometricConfig.from_mapping(self.photometric)  # validates
+        # validated and spelt out in full, so the Python API and the YAML (which lists every default)
+        # record the same settings in dataset_info.json and can resume each other's datasets
+        self.photometric = photometric_settings(self.photometric)
         if self.backgrounds_dir is not None:
             self.backgrounds_dir = str(self.backgrounds_dir)
 

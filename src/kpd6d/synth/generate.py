@@ -331,6 +331,11 @@ def _check_info(root: Path, split: str, models_part: dict, split_part: dict) -> 
             "use another out_dir or delete it"
         )
     old = info.get("splits", {}).get(split)
+    if old is not None and isinstance(old.get("config"), dict) and "photometric" in old["config"]:
+        # datasets started from Python before session 9 recorded the photometric defaults as {}
+        from kpd6d.synth.config import photometric_settings
+
+        old = {**old, "config": {**old["config"], "photometric": photometric_settings(old["config"]["photometric"])}}
     if old is not None:
         keys = sorted(k for k in set(old) | set(split_part) if k != "num_images" and old.get(k) != split_part.get(k))
         if keys:

@@ -19,7 +19,6 @@ that have it otherwise). ``threads``: intra-op threads (None: the backend's defa
 from __future__ import annotations
 
 import os
-import time
 from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
@@ -36,17 +35,13 @@ from kpd6d.deploy.ops import (
 )
 from kpd6d.geometry import (
     affine_apply,
-    bbox_from_points,
     box_to_crop_affine,
-    check_box_inputs,
-    check_intrinsics,
     invert_affine,
-    project_points,
 )
 from kpd6d.io import stack_rgb_images
 from kpd6d.kpd.decoders_numpy import build_numpy_decoder, heatmap_to_crop
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
-from kpd6d.pnp.top_l import pose_records, top_l_mask
+from kpd6d.pnp.estimator import PoseEstimatorBase
 
 __all__ = ["RUNTIME_BACKENDS", "BackendUnavailableError", "RuntimeDetector", "RuntimeKPD", "RuntimePipeline",
            "Session", "read_sidecar"]
@@ -217,148 +212,48 @@ class RuntimeDetector:
                                       int(n["max_detections"]), bool(n["one_per_object"]))
 
 
-class RuntimePipeline:
+class RuntimePipeline(PoseEstimatorBase):
     """Detector + KPD + PnP from an export folder (module docstring). ``detector``: ``"export"`` (the
-    exported detector; the oracle if none was exported) or ``"oracle"`` (GT boxes from ``targets``)."""
+    exported detector; the oracle if none was exported) or ``"oracle"`` (GT boxes from ``targets``).
+    ``__call__``, ``predict_batch``, ``detect``, ``predict_boxes`` and box refinement are the shared
+    core's (:class:`kpd6d.pnp.estimator.PoseEstimatorBase`, as :class:`kpd6d.pipeline.PosePipeline`'s);
+    this class runs the exported networks."""
 
     def __init__(self, export_dir: str | os.PathLike, backend: str = "onnxruntime", pnp: Any = "epnp_ransac",
                  top_l: int | None = 20, refine_boxes: int = 0, detector: str = "export",
                  obj_ids: Sequence[int] | None = None, threads: int | None = None, min_confidence: float = 0.0,
                  residual_scale_px: float = RESIDUAL_SCALE_PX, **detector_overrides: Any) -> None:
-        from kpd6d.registry import PNP_SOLVERS, build_from_cfg
-
         if backend not in RUNTIME_BACKENDS:
             raise ValueError(f"backend {backend!r} unknown; known: {', '.join(RUNTIME_BACKENDS)}")
-        if top_l is not None and int(top_l) < 4:
-            raise ValueError(f"top_l must be >= 4 (PnP needs at least 4 points) or None, got {top_l}")
-        if int(refine_boxes) < 0:
-            raise ValueError(f"refine_boxes must be >= 0, got {refine_boxes}")
-        if not 0.0 <= float(min_confidence) <= 1.0:
-            raise ValueError(f"min_confidence must be in [0, 1], got {min_confidence}")
-        if not float(residual_scale_px) > 0:
-            raise ValueError(f"residual_scale_px must be > 0, got {residual_scale_px}")
-        self.min_confidence, self.residual_scale_px = float(min_confidence), float(residual_scale_px)
+        self._set_options(pnp, top_l, refine_boxes, min_confidence, residual_scale_px)
         self.export_dir, self.backend = Path(export_dir), backend
         self.sidecar = read_sidecar(export_dir)
         self.kpd = RuntimeKPD(export_dir, self.sidecar["kpd"], backend, threads)
         dnode = {"name": "oracle"} if detector == "oracle" else self.sidecar.get("detector", {"name": "oracle"})
         self.detector = RuntimeDetector(export_dir, dnode, backend, threads, obj_ids=obj_ids, **detector_overrides)
-        if isinstance(pnp, (str, Mapping)):
-            pnp = PNP_SOLVERS.build(pnp) if isinstance(pnp, str) else build_from_cfg(PNP_SOLVERS, dict(pnp))
-        self.pnp = pnp
-        self.top_l = None if top_l is None else int(top_l)
-        self.refine_boxes = int(refine_boxes)
         self.device = "cpu"
-        self.last_timings: dict[str, float] = {}
 
-    def __call__(self, image: np.ndarray, K, targets: dict | None = None) -> list[dict]:
-        return self.predict_batch([image], K, None if targets is None else [targets])[0]
+    # -- what the shared core (kpd6d.pnp.estimator) asks of this pipeline ---------------------------
+    def _batch(self, images) -> np.ndarray:
+        """uint8 RGB images (H, W, 3) (a list or (B, H, W, 3)) -> float32 (B, H, W, 3) in [0, 1]."""
+        return stack_rgb_images(images).astype(np.float32) / np.float32(255.0)
 
-    def predict_batch(self, images, K, targets: list[dict] | None = None) -> list[list[dict]]:
-        """Poses for a batch of uint8 (H, W, 3) RGB images (as :meth:`PosePipeline.predict_batch`)."""
-        t0 = time.perf_counter()
-        x = _images_to_float(images)
-        Ks = _check_K(K, x.shape[0])
-        dets = self._detect(x, targets)
-        t1 = time.perf_counter()
-        out = self._estimate(x, Ks, [d["box"] for d in dets], [d["image_index"] for d in dets],
-                             [d["obj_id"] for d in dets], [d["score"] for d in dets])
-        self.last_timings["detect"] = t1 - t0
-        self.last_timings["total"] = time.perf_counter() - t0
-        return out
+    def _num_images(self, x: np.ndarray) -> int:
+        return int(x.shape[0])
 
-    def detect(self, images, targets: list[dict] | None = None) -> list[list[dict]]:
-        """The detector alone (as :meth:`PosePipeline.detect`): per image ``[{"box", "obj_id", "score"}]``."""
-        t0 = time.perf_counter()
-        x = _images_to_float(images)
-        out: list[list[dict]] = [[] for _ in range(x.shape[0])]
-        for d in self._detect(x, targets):
-            out[d["image_index"]].append({"box": d["box"], "obj_id": d["obj_id"], "score": d["score"]})
-        dt = time.perf_counter() - t0
-        self.last_timings = {"detect": dt, "kpd": 0.0, "pnp": 0.0, "total": dt}
-        return out
+    def _image_hw(self, x: np.ndarray) -> tuple[int, int]:
+        return int(x.shape[1]), int(x.shape[2])
 
-    def predict_boxes(self, images, K, boxes, obj_ids, image_index=None, scores=None) -> list[list[dict]]:
-        """KPD + PnP on given boxes, no detector (as :meth:`PosePipeline.predict_boxes`)."""
-        t0 = time.perf_counter()
-        x = _images_to_float(images)
-        Ks = _check_K(K, x.shape[0])
-        boxes, obj_ids, img_idx, scores = check_box_inputs(boxes, obj_ids, image_index, scores, x.shape[0],
-                                                           self.kpd.keypoints_3d)
-        out = self._estimate(x, Ks, boxes.tolist(), img_idx, obj_ids, scores)
-        self.last_timings["detect"] = 0.0
-        self.last_timings["total"] = time.perf_counter() - t0
-        return out
+    def _run_detector(self, x: np.ndarray, targets):
+        return self.detector.predict(x, targets=targets)
+
+    def _keypoints(self, x: np.ndarray, boxes: np.ndarray, image_index: np.ndarray, obj_ids: list[int]):
+        # float32 boxes, as the torch pipeline's crops take them (the same crops to the last bit)
+        kp2d, conf = self.kpd.predict_keypoints(x, boxes.astype(np.float32), image_index, obj_ids)
+        return kp2d.astype(np.float64), conf.astype(np.float64)
 
     def object_points(self, obj_id: int) -> np.ndarray:
         """(P, 3) mm surface points of ``obj_id`` (as :meth:`PosePipeline.object_points`)."""
         return np.asarray(self.kpd.surface_points(int(obj_id)), dtype=np.float64).reshape(-1, 3)
 
-    def _detect(self, x: np.ndarray, targets) -> list[dict]:
-        B = x.shape[0]
-        dets = self.detector.predict(x, targets=targets)
-        if len(dets) != B:
-            raise ValueError(f"detector returned {len(dets)} results for {B} images")
-        known = set(self.kpd.keypoints_3d)
-        flat = []
-        for b, d in enumerate(dets):
-            for box, oid, s in zip(d.boxes.tolist(), d.obj_ids.tolist(), d.scores.tolist()):
-                if int(oid) in known:
-                    flat.append({"box": box, "image_index": b, "obj_id": int(oid), "score": float(s)})
-        return flat
 
-    def _estimate(self, x: np.ndarray, Ks: np.ndarray, boxes: list, img_idx: list[int], obj_ids: list[int],
-                  scores: list[float]) -> list[list[dict]]:
-        out: list[list[dict]] = [[] for _ in range(x.shape[0])]
-        if not boxes:
-            self.last_timings = {"detect": 0.0, "kpd": 0.0, "pnp": 0.0, "total": 0.0}
-            return out
-        boxes_np = np.asarray(boxes, dtype=np.float32)
-        idx = np.asarray(img_idx)
-        pts3d = np.stack([self.kpd.keypoints_3d[o].reshape(-1, 3) for o in obj_ids])
-        Kn = np.ascontiguousarray(Ks[idx])
-        t_kpd = t_pnp = 0.0
-        for it in range(self.refine_boxes + 1):
-            ta = time.perf_counter()
-            kp2d, conf = self.kpd.predict_keypoints(x, boxes_np, idx, obj_ids)
-            tb = time.perf_counter()
-            kp2d_np, conf_np = kp2d.astype(np.float64), conf.astype(np.float64)
-            used = top_l_mask(conf_np, self.top_l)
-            weights = np.where(used, np.maximum(conf_np, 1e-6), 0.0)
-            est = self.pnp.solve_batch(np.ascontiguousarray(pts3d), kp2d_np, Kn, weights)
-            t_kpd += tb - ta
-            t_pnp += time.perf_counter() - tb
-            if it < self.refine_boxes:
-                boxes_np = self._boxes_from_poses(est, obj_ids, img_idx, Ks, boxes_np, x.shape[1:3])
-        pose_records(est, boxes, x.shape[1:3], img_idx, obj_ids, scores, kp2d_np, conf_np, used, out,
-                     points_3d=pts3d, K=Kn, min_confidence=self.min_confidence,
-                     residual_scale_px=self.residual_scale_px)
-        self.last_timings = {"detect": 0.0, "kpd": t_kpd, "pnp": t_pnp, "total": t_kpd + t_pnp}
-        return out
-
-    def _boxes_from_poses(self, est, obj_ids, img_idx, Ks, boxes, hw) -> np.ndarray:
-        """``PosePipeline._boxes_from_poses`` on numpy boxes: each solved instance's box becomes the
-        box of its projected surface points, clipped to the image; failed / degenerate ones keep theirs."""
-        H, W = int(hw[0]), int(hw[1])
-        new = boxes.astype(np.float64)
-        for n, (oid, b) in enumerate(zip(obj_ids, img_idx)):
-            if not bool(est.ok[n]):
-                continue
-            uv, z = project_points(self.kpd.surface_points(oid), Ks[b], np.asarray(est.R[n]), np.asarray(est.t[n]),
-                                   return_depth=True)
-            if not (z > 0).all() or not np.isfinite(uv).all():
-                continue
-            lo, hi = np.clip(uv.min(0), 0, [W, H]), np.clip(uv.max(0), 0, [W, H])
-            if (hi - lo).min() < 2:
-                continue
-            new[n] = bbox_from_points(np.stack([lo, hi]))
-        return new.astype(np.float32)
-
-
-def _images_to_float(images) -> np.ndarray:
-    """uint8 RGB images (H, W, 3) (a list or (B, H, W, 3)) -> float32 (B, H, W, 3) in [0, 1]."""
-    return stack_rgb_images(images).astype(np.float32) / np.float32(255.0)
-
-
-def _check_K(K, n: int) -> np.ndarray:
-    return check_intrinsics(K, n)

@@ -1,0 +1,206 @@
+"""The pose pipelines' shared, torch-free core: detections → crops → keypoints → top-l → PnP → pose dicts.
+
+:class:`PoseEstimatorBase` holds what :class:`kpd6d.pipeline.PosePipeline` (torch) and
+:class:`kpd6d.deploy.runtime.RuntimePipeline` (ONNX Runtime / OpenVINO, no torch) do alike: the
+settings and their checks, ``predict_batch`` / ``detect`` / ``predict_boxes``, the flattening of the
+detector's output, the estimation loop with box refinement (``refine_boxes``: re-crop on the box of
+the object's surface points projected with the estimated pose) and ``last_timings``. A subclass says
+how its images become a batch and how its networks run:
+
+* ``_batch(images)`` → the batch its networks take; ``_num_images(x)``, ``_image_hw(x)`` → (H, W);
+* ``_run_detector(x, targets)`` → one detections object per image (``.boxes`` (n, 4) xywh,
+  ``.obj_ids``, ``.scores``, each with ``.tolist()``);
+* ``_keypoints(x, boxes, image_index, obj_ids)`` → ``keypoints_2d`` (N, k, 2) image px and
+  ``confidences`` (N, k), float64 numpy, for ``boxes`` (N, 4) float64 numpy;
+* ``object_points(obj_id)`` → (P, 3) mm points whose projection bounds the object;
+* attributes ``kpd`` (with ``keypoints_3d``: obj_id → (k, 3)) and ``pnp`` (a ``PNP_SOLVERS`` solver).
+
+Imports numpy and kpd6d's geometry / PnP modules only.
+"""
+
+from __future__ import annotations
+
+import time
+from typing import Any
+
+import numpy as np
+
+from kpd6d.geometry import bbox_from_points, check_box_inputs, check_intrinsics, project_points
+from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
+from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
+
+__all__ = ["PoseEstimatorBase", "build_pnp"]
+
+
+def build_pnp(pnp: Any):
+    """A ``PNP_SOLVERS`` solver from a name or a config mapping; a solver object as it is."""
+    from kpd6d.registry import PNP_SOLVERS, build_from_cfg
+
+    if isinstance(pnp, str):
+        return PNP_SOLVERS.build(pnp)
+    if isinstance(pnp, dict) or hasattr(pnp, "keys"):
+        return build_from_cfg(PNP_SOLVERS, dict(pnp))
+    return pnp
+
+
+class PoseEstimatorBase:
+    """Shared core of the pose pipelines (module docstring). ``input_error``: the exception class for
+    bad input (``PosePipeline`` raises its ``PipelineInputError``)."""
+
+    input_error: type[Exception] = ValueError
+    kpd: Any
+    pnp: Any
+
+    def _set_options(self, pnp: Any, top_l: int | None, refine_boxes: int, min_confidence: float,
+                     residual_scale_px: float = RESIDUAL_SCALE_PX) -> None:
+        """Check and keep the settings both pipelines take."""
+        err = self.input_error
+        if top_l is not None and int(top_l) < 4:
+            raise err(f"top_l must be >= 4 (PnP needs at least 4 points) or None, got {top_l}")
+        if int(refine_boxes) < 0:
+            raise err(f"refine_boxes must be >= 0, got {refine_boxes}")
+        if not 0.0 <= float(min_confidence) <= 1.0:
+            raise err(f"min_confidence must be in [0, 1], got {min_confidence}")
+        if not float(residual_scale_px) > 0:
+            raise err(f"residual_scale_px must be > 0, got {residual_scale_px}")
+        self.pnp = build_pnp(pnp)
+        self.top_l = None if top_l is None else int(top_l)
+        self.refine_boxes = int(refine_boxes)
+        self.min_confidence, self.residual_scale_px = float(min_confidence), float(residual_scale_px)
+        self.last_timings: dict[str, float] = {}
+
+    # -- what a subclass provides ----------------------------------------------------------------
+    def _batch(self, images):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _num_images(self, x) -> int:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _image_hw(self, x) -> tuple[int, int]:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _run_detector(self, x, targets):  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    def _keypoints(self, x, boxes: np.ndarray, image_index: np.ndarray, obj_ids: list[int]):  # pragma: no cover
+        raise NotImplementedError
+
+    def object_points(self, obj_id: int) -> np.ndarray:  # pragma: no cover - abstract
+        raise NotImplementedError
+
+    # -- the interface ----------------------------------------------------------------------------
+    def __call__(self, image: np.ndarray, K, targets: dict | None = None) -> list[dict]:
+        """Poses of the objects in one uint8 RGB image with intrinsics ``K`` (3, 3)."""
+        return self.predict_batch([image], K, None if targets is None else [targets])[0]
+
+    def predict_batch(self, images, K, targets: list[dict] | None = None) -> list[list[dict]]:
+        """Poses for a batch of images. ``K`` is (3, 3) for all images or (B, 3, 3); ``targets`` goes to
+        the detector (the oracle's GT boxes). One list of pose dicts per image: the same as
+        :meth:`detect` followed by :meth:`predict_boxes` on its boxes."""
+        t0 = time.perf_counter()
+        x = self._batch(images)
+        Ks = check_intrinsics(K, self._num_images(x), self.input_error)
+        dets = self._detect(x, targets)
+        t1 = time.perf_counter()
+        out = self._estimate(x, Ks, [d["box"] for d in dets], [d["image_index"] for d in dets],
+                             [d["obj_id"] for d in dets], [d["score"] for d in dets])
+        self.last_timings["detect"] = t1 - t0
+        self.last_timings["total"] = time.perf_counter() - t0
+        return out
+
+    def detect(self, images, targets: list[dict] | None = None) -> list[list[dict]]:
+        """The detector alone: per image a list of ``{"box": (4,) xywh px, "obj_id", "score"}`` (highest
+        score first, only objects the KPD has keypoints for): the boxes :meth:`predict_batch` estimates."""
+        t0 = time.perf_counter()
+        x = self._batch(images)
+        out: list[list[dict]] = [[] for _ in range(self._num_images(x))]
+        for d in self._detect(x, targets):
+            out[d["image_index"]].append({"box": d["box"], "obj_id": d["obj_id"], "score": d["score"]})
+        dt = time.perf_counter() - t0
+        self.last_timings = {"detect": dt, "kpd": 0.0, "pnp": 0.0, "total": dt}
+        return out
+
+    def predict_boxes(self, images, K, boxes, obj_ids, image_index=None, scores=None) -> list[list[dict]]:
+        """KPD + PnP (and ``refine_boxes``) on given boxes, no detector: what tracking runs on the boxes of
+        the objects projected with their previous poses.
+
+        ``boxes`` (N, 4) xywh px, ``obj_ids`` (N,), ``image_index`` (N,) which image each box is in
+        (None: all in image 0), ``scores`` (N,) copied to the pose dicts' ``score`` (None: 1). Returns
+        one list of pose dicts per image, in the order of the boxes. Objects the KPD has no keypoints
+        for raise ``input_error``.
+        """
+        t0 = time.perf_counter()
+        x = self._batch(images)
+        n = self._num_images(x)
+        Ks = check_intrinsics(K, n, self.input_error)
+        boxes, obj_ids, img_idx, scores = check_box_inputs(boxes, obj_ids, image_index, scores, n,
+                                                           self.kpd.keypoints_3d, error=self.input_error)
+        out = self._estimate(x, Ks, boxes.tolist(), img_idx, obj_ids, scores)
+        self.last_timings["detect"] = 0.0
+        self.last_timings["total"] = time.perf_counter() - t0
+        return out
+
+    # -- the shared steps -------------------------------------------------------------------------
+    def _detect(self, x, targets) -> list[dict]:
+        """The detections of the batch ``x`` the KPD can localise, flat: box, image_index, obj_id, score."""
+        B = self._num_images(x)
+        dets = self._run_detector(x, targets)
+        if len(dets) != B:
+            raise self.input_error(f"detector returned {len(dets)} results for {B} images")
+        known = {int(o) for o in self.kpd.keypoints_3d}
+        flat = []
+        for b, d in enumerate(dets):
+            for box, oid, s in zip(d.boxes.tolist(), d.obj_ids.tolist(), d.scores.tolist()):
+                if int(oid) in known:  # the KPD cannot localise objects it has no keypoints for
+                    flat.append({"box": box, "image_index": b, "obj_id": int(oid), "score": float(s)})
+        return flat
+
+    def _estimate(self, x, Ks: np.ndarray, boxes: list, img_idx: list[int], obj_ids: list[int],
+                  scores: list[float]) -> list[list[dict]]:
+        """keypoints -> top-l -> PnP (``refine_boxes`` more times) on ``boxes``; sets ``last_timings``."""
+        out: list[list[dict]] = [[] for _ in range(self._num_images(x))]
+        if not boxes:
+            self.last_timings = {"detect": 0.0, "kpd": 0.0, "pnp": 0.0, "total": 0.0}
+            return out
+        hw = self._image_hw(x)
+        cur = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+        idx = np.asarray(img_idx, dtype=np.int64)
+        pts3d = np.stack([np.asarray(self.kpd.keypoints_3d[o], dtype=np.float64).reshape(-1, 3) for o in obj_ids])
+        Kn = np.ascontiguousarray(Ks[idx])
+        t_kpd = t_pnp = 0.0
+        for it in range(self.refine_boxes + 1):
+            ta = time.perf_counter()
+            kp2d, conf = self._keypoints(x, cur, idx, obj_ids)
+            tb = time.perf_counter()
+            if pts3d.shape[1] != kp2d.shape[1]:
+                raise self.input_error(f"KPD returned {kp2d.shape[1]} keypoints but keypoints_3d has "
+                                       f"{pts3d.shape[1]}")
+            est = solve_top_l(self.pnp, pts3d, kp2d, Kn, conf, self.top_l)
+            t_kpd += tb - ta
+            t_pnp += time.perf_counter() - tb
+            if it < self.refine_boxes:
+                cur = self._boxes_from_poses(est, obj_ids, img_idx, Ks, cur, hw)
+        used = top_l_mask(conf, self.top_l)
+        pose_records(est, boxes, hw, img_idx, obj_ids, scores, kp2d, conf, used, out,
+                     points_3d=pts3d, K=Kn, min_confidence=self.min_confidence,
+                     residual_scale_px=self.residual_scale_px)
+        self.last_timings = {"detect": 0.0, "kpd": t_kpd, "pnp": t_pnp, "total": t_kpd + t_pnp}
+        return out
+
+    def _boxes_from_poses(self, est, obj_ids, img_idx, Ks, boxes: np.ndarray, hw) -> np.ndarray:
+        """Box refinement: each solved instance's box becomes the box of its object's surface points
+        projected with the estimated pose, clipped to the image; failed or degenerate ones keep theirs."""
+        H, W = int(hw[0]), int(hw[1])
+        new = np.array(boxes, dtype=np.float64)
+        for n, (oid, b) in enumerate(zip(obj_ids, img_idx)):
+            if not bool(est.ok[n]):
+                continue
+            uv, z = project_points(self.object_points(oid), Ks[b], np.asarray(est.R[n]), np.asarray(est.t[n]),
+                                   return_depth=True)
+            if not (z > 0).all() or not np.isfinite(uv).all():
+                continue
+            lo, hi = np.clip(uv.min(0), 0, [W, H]), np.clip(uv.max(0), 0, [W, H])
+            if (hi - lo).min() < 2:
+                continue
+            new[n] = bbox_from_points(np.stack([lo, hi]))
+        return new

@@ -288,6 +288,32 @@ def test_score_counts_wrong_poses_as_failures(scene):
     assert never["reacquire_frames"] == [None, None] and never["lost_object_frames"] == n * len(IDS)
 
 
+def test_calibration_separates_right_from_wrong_poses_by_confidence(scene):
+    """calibrate() on made-up estimates: the GT pose with confidence 0.9 (right) every other frame, a
+    pose turned 45 degrees with confidence 0.2 (wrong) on the others: thresholds up to 0.2 keep both
+    (precision = the right share), 0.3 to 0.9 keep only the right ones (precision and recall 1), above
+    0.9 none; the best threshold by F1 is the lowest perfect one. Poses the pipeline calls not ok and
+    objects out of view are left out."""
+    from kpd6d.benchmarks.track import calibrate, format_calibration
+
+    v, objs = scene["leave"], scene["objs"]
+    turn = rotation_about_axis([1, 1, 0], np.deg2rad(45))
+    raw = [{g["obj_id"]: ((True, 0.9, g["R"], g["t"]) if i % 2 == 0 else (True, 0.2, g["R"] @ turn, g["t"]))
+            for g in recs} for i, recs in enumerate(v.gt)]
+    raw[0] = {o: (False, 0.95, *rest[2:]) for o, rest in raw[0].items()}  # not ok: not counted
+    cal = calibrate(v, objs, raw, thresholds=(0.0, 0.2, 0.3, 0.9, 0.95))
+    in_view = [(i, g) for i, recs in enumerate(v.gt) for g in recs if g["in_view"] >= 0.5 and i > 0]
+    n_right = sum(i % 2 == 0 for i, _ in in_view)
+    assert cal["poses"] == len(in_view) and cal["right"] == n_right > 0
+    rows = {r["threshold"]: r for r in cal["rows"]}
+    assert rows[0.0]["precision"] == pytest.approx(n_right / len(in_view)) and rows[0.0]["recall"] == 1.0
+    assert rows[0.2]["kept"] == 1.0
+    assert rows[0.3]["precision"] == rows[0.3]["recall"] == rows[0.9]["recall"] == 1.0
+    assert rows[0.95]["kept"] == 0.0 and rows[0.95]["precision"] is None and rows[0.95]["f1"] == 0.0
+    assert cal["best"] == 0.3
+    assert "best threshold by F1: 0.3" in format_calibration(cal)
+
+
 # -- the command line -----------------------------------------------------------------------------
 def _exit_2(capsys, argv) -> str:
     with pytest.raises(SystemExit) as e:
@@ -365,4 +391,5 @@ def test_cli_runs_on_real_untrained_checkpoints(tmp_path, capsys):
     assert rep["settings"]["backend"] == "torch" and rep["settings"]["detect_every"] == 2
     assert every["detector_calls"] == 3 and every["detected"] == [True] * 3 and len(every["latency_ms"]) == 3
     assert tracked["detected"][0] and tracked["frames"] == 3 and tracked["fps"] > 0
+    assert [r["threshold"] for r in rep["calibration"]["rows"]][:2] == [0.0, 0.1] and "confidence calibration" in text
     assert not list(out.parent.glob(".*.tmp"))  # written atomically

@@ -53,8 +53,9 @@ import numpy as np
 
 from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K, bbox_from_points, pose_from_view
 
-__all__ = ["RAMP_FRAMES", "Video", "benchmark", "build_pipeline", "format_table", "leave_range", "main", "make_video",
-           "run_detect_every_frame", "run_tracked", "score", "trajectories"]
+__all__ = ["RAMP_FRAMES", "THRESHOLDS", "Video", "benchmark", "build_pipeline", "calibrate", "format_calibration",
+           "format_table", "leave_range", "main", "make_video", "run_detect_every_frame", "run_tracked", "score",
+           "trajectories"]
 
 #: distance range of the trajectories' centres (mm); each object moves +- DEPTH_SWING_MM about its own
 DISTANCE_MM = (600.0, 900.0)
@@ -270,18 +271,73 @@ def run_detect_every_frame(pipeline, video: Video, *, lost_threshold: float = 0.
     K = video.K
     for i in range(min(int(warmup), len(video.frames))):
         pipeline.predict_batch([video.frames[i]], K, [video.targets(i)] if oracle else None)
-    seconds, poses, kpd_calls = [], [], 0
+    seconds, poses, raw, kpd_calls = [], [], [], 0
     for i, frame in enumerate(video.frames):
         tg = [video.targets(i)] if oracle else None
         t0 = time.perf_counter()
         res = pipeline.predict_batch([frame], K, tg)[0]
         seconds.append(time.perf_counter() - t0)
         kpd_calls += bool(res)  # the KPD runs when the detector found something
+        best = _best_per_object(res)
         poses.append({o: (bool(p["ok"]) and float(p.get("confidence", 0.0)) >= float(lost_threshold), p["R"], p["t"])
-                      for o, p in _best_per_object(res).items()})
+                      for o, p in best.items()})
+        raw.append({o: (bool(p["ok"]), float(p.get("confidence", 0.0)), p["R"], p["t"]) for o, p in best.items()})
     n = len(video.frames)
-    return {"seconds": seconds, "detected": [True] * n, "poses": poses,
+    return {"seconds": seconds, "detected": [True] * n, "poses": poses, "raw": raw,
             "stats": {"frames": n, "detector_calls": n, "kpd_calls": kpd_calls}}
+
+
+#: the confidence thresholds :func:`calibrate` tries
+THRESHOLDS = (0.0, 0.1, 0.2, 0.3, 0.4, 0.5, 0.6, 0.7)
+
+
+def calibrate(video: Video, objects, raw: list[dict], thresholds=THRESHOLDS, max_add: float = 0.1) -> dict:
+    """How well the pose confidence separates right from wrong poses, for choosing ``lost_threshold``
+    on a rendered video (synthetic data: nothing real enters the choice).
+
+    ``raw``: per frame ``{obj_id: (pipeline ok, confidence, R, t)}`` (:func:`run_detect_every_frame`'s
+    ``"raw"``: one independent estimate per object and frame). Over the object-frames in view with a
+    pose the pipeline calls ok, a pose is *right* when its ADD(-S) is below ``max_add`` × the diameter.
+    For each threshold τ: ``kept`` (fraction with confidence ≥ τ), ``precision`` (right among kept),
+    ``recall`` (kept among right) and ``f1``. ``best`` is the τ of the highest F1 (the lowest on ties).
+    """
+    from kpd6d.evaluation import add_error, adds_error
+
+    models = {int(o.obj_id): o for o in objects}
+    points = {o: _model_points(m) for o, m in models.items()}
+    conf, right = [], []
+    for i, recs in enumerate(video.gt):
+        for g in recs:
+            o = int(g["obj_id"])
+            if g["in_view"] < IN_VIEW or o not in raw[i] or not raw[i][o][0]:
+                continue
+            _, c, R, t = raw[i][o]
+            err = (adds_error if models[o].is_symmetric else add_error)(R, t, g["R"], g["t"], points[o])
+            conf.append(c)
+            right.append(err < max_add * models[o].diameter)
+    conf_a, right_a = np.asarray(conf, dtype=np.float64), np.asarray(right, dtype=bool)
+    rows = []
+    for tau in thresholds:
+        kept = conf_a >= float(tau)
+        tp = int((kept & right_a).sum())
+        precision = tp / int(kept.sum()) if kept.any() else None
+        recall = tp / int(right_a.sum()) if right_a.any() else None
+        f1 = (2 * precision * recall / (precision + recall) if precision and recall else 0.0)
+        rows.append({"threshold": float(tau), "kept": float(kept.mean()) if len(kept) else None,
+                     "precision": precision, "recall": recall, "f1": f1})
+    best = max(rows, key=lambda r: (r["f1"], -r["threshold"]))["threshold"] if rows else None
+    return {"poses": len(conf), "right": int(right_a.sum()), "max_add": float(max_add), "rows": rows, "best": best}
+
+
+def format_calibration(cal: dict) -> str:
+    """:func:`calibrate`'s table as markdown."""
+    lines = [f"confidence calibration over {cal['poses']} ok poses in view ({cal['right']} right: ADD(-S) < "
+             f"{cal['max_add']:g} d); best threshold by F1: {cal['best']}",
+             "| threshold | kept | precision | recall | F1 |", "|---|---|---|---|---|"]
+    for r in cal["rows"]:
+        lines.append(f"| {r['threshold']:.2f} | {_f(r['kept'], '.1%')} | {_f(r['precision'], '.1%')} | "
+                     f"{_f(r['recall'], '.1%')} | {r['f1']:.3f} |")
+    return "\n".join(lines)
 
 
 def _median(x: list[float]) -> float | None:
@@ -363,19 +419,20 @@ def benchmark(pipeline, video: Video, objects, *, detect_every: int = 10, lost_t
     if missing:
         raise ValueError(f"the KPD has no keypoints for object(s) {missing} (it covers {sorted(known)})")
     H, W = video.frames[0].shape[:2]
-    rows = []
+    rows, calibration = [], None
     for mode in modes:
         if mode == "tracked":
             run = run_tracked(pipeline, video, detect_every=detect_every, lost_threshold=lost_threshold,
                               smoothing=smoothing, warmup=warmup)
         else:
             run = run_detect_every_frame(pipeline, video, lost_threshold=lost_threshold, warmup=warmup)
+            calibration = calibrate(video, objects, run["raw"])
         rows.append({"mode": mode, **score(video, objects, run)})
     return {"video": {"frames": len(video.frames), "width": int(W), "height": int(H), "obj_ids": video.obj_ids,
                       "K": np.asarray(video.K).tolist(), "leave": list(video.leave) if video.leave else None},
             "settings": {"detect_every": int(detect_every), "lost_threshold": float(lost_threshold),
                          "smoothing": float(smoothing), "warmup": int(warmup), "oracle": _is_oracle(pipeline)},
-            "modes": rows}
+            "modes": rows, "calibration": calibration}
 
 
 # -- report ----------------------------------------------------------------------------------------
@@ -564,6 +621,8 @@ def main(argv: list[str] | None = None) -> int:
           f"{threads or 'default'} threads); {a.pnp}, top-{a.top_l}; tracked: detect_every={a.detect_every}, "
           f"lost_threshold={a.lost_threshold:g}, smoothing={a.smoothing:g}; {a.warmup} warm-up frames untimed")
     print(format_table(report))
+    if report.get("calibration"):
+        print(format_calibration(report["calibration"]))
     if a.json:
         from kpd6d.io import atomic_write_json
 

@@ -234,6 +234,21 @@ def test_pipeline_from_export_matches_torch_end_to_end(models, backend):
     args = ([B[1] for B in boxes], [B[2] for B in boxes], [B[0] for B in boxes])
     assert _compare_poses(want, rt.predict_boxes(images, K, *args)) >= 1
     assert _compare_poses(want, torch_pipe.predict_boxes(images, K, *args)) >= 1
+    # crops on grown boxes (box_scale): the same in both
+    grown = [PosePipeline(DETECTORS.build("oracle"), models["kpd"], device="cpu", refine_boxes=1, box_scale=1.2, **kw),
+             PosePipeline.from_export(models["export"], backend=backend, detector="oracle", refine_boxes=1,
+                                      box_scale=1.2, **kw)]
+    assert grown[1].box_scale == 1.2
+    # (keypoints, confidences and boxes: the poses of this untrained KPD are so ill-conditioned that
+    # keypoints equal within 1e-3 px give rotations 0.02 deg apart)
+    g_want, g_have = (g.predict_batch(images, K, _targets()) for g in grown)
+    for ws, hs in zip(g_want, g_have):
+        for w, h in zip(ws, hs):
+            np.testing.assert_allclose(h["box"], w["box"], atol=0.01)
+            np.testing.assert_allclose(h["keypoints_2d"], w["keypoints_2d"], atol=0.05)
+            np.testing.assert_allclose(h["confidences"], w["confidences"], atol=1e-3)
+    # and they differ from the crops on the boxes as given
+    assert not np.allclose(g_want[0][0]["keypoints_2d"], want[0][0]["keypoints_2d"], atol=0.05)
     # the exported detector, end to end
     torch_pipe = PosePipeline(models["det"], models["kpd"], device="cpu", **kw)
     rt = PosePipeline.from_export(models["export"], backend=backend, **kw)

@@ -207,3 +207,42 @@ def test_refine_boxes_recrops_on_the_estimated_pose():
 def test_refine_boxes_must_be_non_negative():
     with pytest.raises(PipelineInputError, match="refine_boxes"):
         PosePipeline(DETECTORS.build("oracle"), FakeKPD({}, {}), pnp="epnp", refine_boxes=-1, device="cpu")
+
+
+class BoxRecordingKPD(FakeKPD):
+    """FakeKPD that records the boxes it is asked to crop on."""
+
+    def predict_keypoints(self, images, boxes, image_index, obj_ids):
+        self.boxes_seen = [*getattr(self, "boxes_seen", []), boxes.cpu().numpy().astype(np.float64)]
+        return super().predict_keypoints(images, boxes, image_index, obj_ids)
+
+
+@pytest.mark.parametrize("refine", [0, 1])
+def test_box_scale_grows_the_kpd_crops_and_keeps_the_reported_boxes(refine):
+    """box_scale=s: the KPD crops on every box grown s times about its centre (first pass and refined
+    passes); the pose dicts report the boxes as given; poses are still exact with a KPD that sees the
+    keypoints wherever the crop is. Bad values name box_scale."""
+    kp3d, gt, targets = _scene(np.random.default_rng(0))
+    runs = {}
+    for s in (1.0, 1.3):
+        kpd = BoxRecordingKPD(kp3d, gt)
+        pipe = PosePipeline(DETECTORS.build("oracle"), kpd, pnp="epnp", top_l=None, device="cpu", refine_boxes=refine,
+                            box_scale=s)
+        runs[s] = (pipe.predict_batch(_images(), LINEMOD_K, targets), kpd.boxes_seen)
+    (_out1, seen1), (out13, seen13) = runs[1.0], runs[1.3]
+    assert len(seen1) == len(seen13) == refine + 1
+    for i, (a, b) in enumerate(zip(seen1, seen13)):
+        # the first pass crops on the given boxes; a refined pass on boxes of poses that differ by the
+        # fake KPD's quantisation (a quarter crop pixel) between the two runs
+        rtol, atol = (1e-5, 1e-3) if i == 0 else (1e-2, 1.0)
+        np.testing.assert_allclose(b[:, 2:], 1.3 * a[:, 2:], rtol=rtol)  # grown ...
+        np.testing.assert_allclose(b[:, :2] + b[:, 2:] / 2, a[:, :2] + a[:, 2:] / 2, atol=atol)  # ... about the centre
+    flat_given = np.concatenate([t["boxes"] for t in targets])
+    np.testing.assert_allclose(np.stack([p["box"] for preds in out13 for p in preds]), flat_given, atol=1e-4)
+    for b, preds in enumerate(out13):
+        for p in preds:
+            _R, t, _ = gt[(b, p["obj_id"])]
+            assert p["ok"] and np.linalg.norm(p["t"] - t) < 2.0
+    for bad in (0, -1.0, float("nan"), "big"):
+        with pytest.raises(PipelineInputError, match="box_scale"):
+            PosePipeline(DETECTORS.build("oracle"), FakeKPD({}, {}), pnp="epnp", device="cpu", box_scale=bad)

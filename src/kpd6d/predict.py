@@ -28,7 +28,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from kpd6d.config import cfg_int, to_int
+from kpd6d.config import cfg_float, cfg_int, to_int
 from kpd6d.geometry import LINEMOD_K
 from kpd6d.io import atomic_write_image, atomic_write_text
 from kpd6d.visualize import draw_predictions
@@ -326,7 +326,8 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
                                     kpd_ckpt=OmegaConf.select(cfg, "kpd_ckpt", default=None, throw_on_missing=torch_backend),
                                     export_dir=cfg.get("export_dir"), pnp=OmegaConf.to_container(cfg.pnp, resolve=True),
                                     top_l=cfg.select.top_l, refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
-                                    min_confidence=float(cfg.get("min_confidence", 0.0) or 0.0), device=cfg.device)
+                                    min_confidence=float(cfg.get("min_confidence", 0.0) or 0.0), device=cfg.device,
+                                    box_scale=cfg_float(cfg, "box_scale", 1.0))
     max_frames = cfg.get("max_frames")
     return predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=cfg_int(cfg, "batch_size"),
                           overlays=bool(cfg.overlays), progress=bool(cfg.progress),

@@ -21,7 +21,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd6d.config import cfg_int, to_int
+from kpd6d.config import cfg_float, cfg_int, to_int
 from kpd6d.io import to_plain
 
 __all__ = ["run_evaluation", "run_experiment"]
@@ -158,7 +158,8 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     pipeline = PosePipeline.for_backend(backend, detector_ckpt=cfg.detector_ckpt, kpd_ckpt=kpd_ckpt,
                                         export_dir=cfg.get("export_dir"), pnp=pnp_cfg, top_l=top_l,
                                         device=cfg.device, obj_ids=obj_ids,
-                                        refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"))
+                                        refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
+                                        box_scale=cfg_float(cfg, "box_scale", 1.0))
     covered = sorted(int(o) for o in pipeline.kpd.keypoints_3d)
     wanted = obj_ids if obj_ids is not None else covered
     missing = sorted(set(wanted) - set(covered))
@@ -167,7 +168,8 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
                          f"(it covers {covered})")
     ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
-            "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "device": str(pipeline.device)}
+            "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
+            "device": str(pipeline.device)}
     if backend != "torch":
         info.update(backend=backend, export_dir=str(cfg.export_dir))
     return evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle", batch_size=cfg_int(cfg, "batch_size"),
@@ -186,6 +188,7 @@ def _evaluate(cfg, root: Path, det, kpd, out_dir: Path) -> dict:
                  "max_frames": cfg.evaluate.max_frames},
         "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
         "batch_size": cfg_int(cfg, "evaluate.batch_size"), "refine_boxes": to_int(cfg.evaluate.get("refine_boxes", 0) or 0, "evaluate.refine_boxes"),
+        "box_scale": cfg_float(cfg, "evaluate.box_scale", 1.0),
         "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress),
     })
     extra = None

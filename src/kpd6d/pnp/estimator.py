@@ -4,7 +4,9 @@
 :class:`kpd6d.deploy.runtime.RuntimePipeline` (ONNX Runtime / OpenVINO, no torch) do alike: the
 settings and their checks, ``predict_batch`` / ``detect`` / ``predict_boxes``, the flattening of the
 detector's output, the estimation loop with box refinement (``refine_boxes``: re-crop on the box of
-the object's surface points projected with the estimated pose) and ``last_timings``. A subclass says
+the object's surface points projected with the estimated pose), ``box_scale`` (the KPD crops on each
+box grown by this factor about its centre; the boxes reported and refined stay as they are) and
+``last_timings``. A subclass says
 how its images become a batch and how its networks run:
 
 * ``_batch(images)`` → the batch its networks take; ``_num_images(x)``, ``_image_hw(x)`` → (H, W);
@@ -20,6 +22,7 @@ Imports numpy and kpd6d's geometry / PnP modules only.
 
 from __future__ import annotations
 
+import math
 import time
 from typing import Any
 
@@ -29,7 +32,18 @@ from kpd6d.geometry import bbox_from_points, check_box_inputs, check_intrinsics,
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
-__all__ = ["PoseEstimatorBase", "build_pnp"]
+__all__ = ["PoseEstimatorBase", "build_pnp", "scale_boxes"]
+
+
+def scale_boxes(boxes: np.ndarray, factor: float) -> np.ndarray:
+    """Boxes (N, 4) xywh grown (or shrunk) by ``factor`` about their centres."""
+    if factor == 1.0:
+        return boxes
+    b = np.array(boxes, dtype=np.float64)
+    centre = b[:, :2] + b[:, 2:] / 2
+    b[:, 2:] *= factor
+    b[:, :2] = centre - b[:, 2:] / 2
+    return b
 
 
 def build_pnp(pnp: Any):
@@ -52,9 +66,16 @@ class PoseEstimatorBase:
     pnp: Any
 
     def _set_options(self, pnp: Any, top_l: int | None, refine_boxes: int, min_confidence: float,
-                     residual_scale_px: float = RESIDUAL_SCALE_PX) -> None:
+                     residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0) -> None:
         """Check and keep the settings both pipelines take."""
         err = self.input_error
+        try:
+            box_scale = float(box_scale)
+        except (TypeError, ValueError):
+            raise err(f"box_scale must be a number > 0, got {box_scale!r}") from None
+        if not (math.isfinite(box_scale) and box_scale > 0):
+            raise err(f"box_scale must be a number > 0, got {box_scale!r}")
+        self.box_scale = box_scale
         if top_l is not None and int(top_l) < 4:
             raise err(f"top_l must be >= 4 (PnP needs at least 4 points) or None, got {top_l}")
         if int(refine_boxes) < 0:
@@ -170,7 +191,7 @@ class PoseEstimatorBase:
         t_kpd = t_pnp = 0.0
         for it in range(self.refine_boxes + 1):
             ta = time.perf_counter()
-            kp2d, conf = self._keypoints(x, cur, idx, obj_ids)
+            kp2d, conf = self._keypoints(x, scale_boxes(cur, self.box_scale), idx, obj_ids)
             tb = time.perf_counter()
             if pts3d.shape[1] != kp2d.shape[1]:
                 raise self.input_error(f"KPD returned {kp2d.shape[1]} keypoints but keypoints_3d has "

@@ -246,3 +246,38 @@ def test_box_scale_grows_the_kpd_crops_and_keeps_the_reported_boxes(refine):
     for bad in (0, -1.0, float("nan"), "big"):
         with pytest.raises(PipelineInputError, match="box_scale"):
             PosePipeline(DETECTORS.build("oracle"), FakeKPD({}, {}), pnp="epnp", device="cpu", box_scale=bad)
+
+
+def test_depth_calibration_scales_the_reported_translations_and_the_refined_boxes():
+    """depth_calibration: every reported t is the PnP t times its object's factor (R, ok and the pose
+    confidence are the PnP pose's); box refinement projects the calibrated pose (nearer: a larger
+    box). Bad values name depth_calibration."""
+    kp3d, gt, targets = _scene(np.random.default_rng(0))
+    factors = {1: 0.9, "default": 1.2}
+    runs = {}
+    for refine in (0, 1):
+        for cal in (1.0, factors):
+            kpd = BoxRecordingKPD(kp3d, gt)
+            pipe = PosePipeline(DETECTORS.build("oracle"), kpd, pnp="epnp", top_l=None, device="cpu",
+                                refine_boxes=refine, depth_calibration=cal)
+            runs[refine, cal == 1.0] = (pipe.predict_batch(_images(), LINEMOD_K, targets), kpd.boxes_seen)
+    (raw, _), (cal, _) = runs[0, True], runs[0, False]
+    n = 0
+    for preds_raw, preds_cal in zip(raw, cal):
+        for a, b in zip(preds_raw, preds_cal):
+            f = 0.9 if a["obj_id"] == 1 else 1.2
+            assert a["ok"] and b["ok"]
+            np.testing.assert_array_equal(b["R"], a["R"])
+            np.testing.assert_allclose(b["t"], f * a["t"], rtol=1e-12)
+            assert b["confidence"] == a["confidence"] and b["residual_px"] == a["residual_px"]
+            n += 1
+    assert n == 3
+    # the refined pass crops on the projection of the calibrated pose: side ~ 1 / factor
+    (_, seen_raw), (_, seen_cal) = runs[1, True], runs[1, False]
+    flat_ids = [o for tg in targets for o in tg["obj_ids"]]
+    want = np.array([1 / 0.9 if o == 1 else 1 / 1.2 for o in flat_ids])
+    np.testing.assert_allclose((seen_cal[1][:, 2:] / seen_raw[1][:, 2:]).mean(1), want, rtol=0.03)
+    np.testing.assert_allclose(seen_cal[0], seen_raw[0])  # the first pass: the detector's boxes
+    for bad in (0, -1.0, float("nan"), "big", {"x": 1.0}):
+        with pytest.raises(PipelineInputError, match="depth_calibration"):
+            PosePipeline(DETECTORS.build("oracle"), FakeKPD({}, {}), pnp="epnp", device="cpu", depth_calibration=bad)

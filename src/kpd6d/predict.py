@@ -30,7 +30,7 @@ import numpy as np
 
 from kpd6d.config import cfg_float, cfg_int, to_int
 from kpd6d.geometry import LINEMOD_K
-from kpd6d.io import atomic_write_image, atomic_write_text
+from kpd6d.io import atomic_write_image, atomic_write_text, to_plain
 from kpd6d.visualize import draw_predictions
 
 __all__ = ["IMAGE_EXTS", "TRACK_OPTIONS", "VIDEO_EXTS", "corners_from_kpd", "expand_track_override", "is_camera",
@@ -327,7 +327,8 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
                                     export_dir=cfg.get("export_dir"), pnp=OmegaConf.to_container(cfg.pnp, resolve=True),
                                     top_l=cfg.select.top_l, refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
                                     min_confidence=float(cfg.get("min_confidence", 0.0) or 0.0), device=cfg.device,
-                                    box_scale=cfg_float(cfg, "box_scale", 1.0))
+                                    box_scale=cfg_float(cfg, "box_scale", 1.0),
+                                    depth_calibration=to_plain(cfg.get("depth_calibration", 1.0)))
     max_frames = cfg.get("max_frames")
     return predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=cfg_int(cfg, "batch_size"),
                           overlays=bool(cfg.overlays), progress=bool(cfg.progress),

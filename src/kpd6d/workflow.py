@@ -159,7 +159,8 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
                                         export_dir=cfg.get("export_dir"), pnp=pnp_cfg, top_l=top_l,
                                         device=cfg.device, obj_ids=obj_ids,
                                         refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
-                                        box_scale=cfg_float(cfg, "box_scale", 1.0))
+                                        box_scale=cfg_float(cfg, "box_scale", 1.0),
+                                        depth_calibration=_depth_calibration(cfg.get("depth_calibration", 1.0)))
     covered = sorted(int(o) for o in pipeline.kpd.keypoints_3d)
     wanted = obj_ids if obj_ids is not None else covered
     missing = sorted(set(wanted) - set(covered))
@@ -169,14 +170,27 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
-            "device": str(pipeline.device)}
+            "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device)}
     if backend != "torch":
         info.update(backend=backend, export_dir=str(cfg.export_dir))
-    return evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle", batch_size=cfg_int(cfg, "batch_size"),
-                    max_frames=cfg.data.max_frames, n_overlays=cfg_int(cfg, "overlays"), run_info=info,
-                    progress=bool(cfg.progress), extra_metrics=extra_metrics,
-                    shard=to_int(cfg.get("shard", 0), "shard"), num_shards=to_int(cfg.get("num_shards", 1), "num_shards"),
-                    merge=bool(cfg.get("merge", False)))
+    metrics = evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle",
+                       batch_size=cfg_int(cfg, "batch_size"), max_frames=cfg.data.max_frames,
+                       n_overlays=cfg_int(cfg, "overlays"), run_info=info, progress=bool(cfg.progress),
+                       extra_metrics=extra_metrics, shard=to_int(cfg.get("shard", 0), "shard"),
+                       num_shards=to_int(cfg.get("num_shards", 1), "num_shards"), merge=bool(cfg.get("merge", False)))
+    if bool(cfg.get("fit_depth_calibration", False)) and "mean" in metrics:
+        from kpd6d.evaluation.calibration import fit_depth_calibration, write_depth_calibration
+
+        fit = fit_depth_calibration(Path(out_dir) / "results.csv", root, cfg.data.split,
+                                    applied=_depth_calibration(cfg.get("depth_calibration", 1.0)))
+        path = write_depth_calibration(fit, Path(out_dir) / "depth_calibration.json")
+        _log(f"depth calibration fitted on {root}/{cfg.data.split}: {path} (all objects: {fit['global']:.4f})")
+    return metrics
+
+
+def _depth_calibration(value):
+    """A config's ``depth_calibration`` as the pipelines take it (a number, a mapping or a file path)."""
+    return 1.0 if value is None else to_plain(value)
 
 
 def _evaluate(cfg, root: Path, det, kpd, out_dir: Path) -> dict:
@@ -189,6 +203,7 @@ def _evaluate(cfg, root: Path, det, kpd, out_dir: Path) -> dict:
         "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
         "batch_size": cfg_int(cfg, "evaluate.batch_size"), "refine_boxes": to_int(cfg.evaluate.get("refine_boxes", 0) or 0, "evaluate.refine_boxes"),
         "box_scale": cfg_float(cfg, "evaluate.box_scale", 1.0),
+        "depth_calibration": _depth_calibration(cfg.evaluate.get("depth_calibration", 1.0)),
         "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress),
     })
     extra = None

@@ -5,7 +5,9 @@
 settings and their checks, ``predict_batch`` / ``detect`` / ``predict_boxes``, the flattening of the
 detector's output, the estimation loop with box refinement (``refine_boxes``: re-crop on the box of
 the object's surface points projected with the estimated pose), ``box_scale`` (the KPD crops on each
-box grown by this factor about its centre; the boxes reported and refined stay as they are) and
+box grown by this factor about its centre; the boxes reported and refined stay as they are),
+``depth_calibration`` (each estimated translation multiplied by a factor, one for all objects or one per
+object: a depth calibration fitted on synthetic validation, :mod:`kpd6d.evaluation.calibration`) and
 ``last_timings``. A subclass says
 how its images become a batch and how its networks run:
 
@@ -22,8 +24,11 @@ Imports numpy and kpd6d's geometry / PnP modules only.
 
 from __future__ import annotations
 
+import json
 import math
+import os
 import time
+from collections.abc import Mapping
 from typing import Any
 
 import numpy as np
@@ -32,7 +37,7 @@ from kpd6d.geometry import bbox_from_points, check_box_inputs, check_intrinsics,
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
-__all__ = ["PoseEstimatorBase", "build_pnp", "scale_boxes"]
+__all__ = ["PoseEstimatorBase", "build_pnp", "parse_depth_calibration", "scale_boxes"]
 
 
 def scale_boxes(boxes: np.ndarray, factor: float) -> np.ndarray:
@@ -44,6 +49,60 @@ def scale_boxes(boxes: np.ndarray, factor: float) -> np.ndarray:
     b[:, 2:] *= factor
     b[:, :2] = centre - b[:, 2:] / 2
     return b
+
+
+def parse_depth_calibration(value: Any, error: type[Exception] = ValueError) -> tuple[float, dict[int, float]]:
+    """``depth_calibration`` → (factor for every object, {obj_id: factor}).
+
+    ``value``: a number (every object; None: 1); a mapping ``{obj_id: factor}`` with an optional
+    ``"default"``; the output of :func:`kpd6d.evaluation.calibration.fit_depth_calibration`
+    (``{"global": g, "per_object": {...}}``); or the path of a JSON file holding either mapping.
+    Every factor must be a finite number > 0; ``error`` names the bad one."""
+    source = ""
+    if isinstance(value, (str, os.PathLike)) and not _is_number(value):
+        source = f"{os.fspath(value)}: "
+        try:
+            with open(value, encoding="utf-8") as fh:
+                value = json.load(fh)
+        except FileNotFoundError:
+            raise error(f"depth_calibration file {os.fspath(value)} does not exist") from None
+        except (OSError, json.JSONDecodeError) as exc:
+            raise error(f"depth_calibration file {os.fspath(value)} cannot be read as JSON: {exc}") from None
+
+    def factor(v, what):
+        try:
+            f = float(v)
+        except (TypeError, ValueError):
+            raise error(f"{source}depth_calibration{what} must be a number > 0, got {v!r}") from None
+        if not (math.isfinite(f) and f > 0):
+            raise error(f"{source}depth_calibration{what} must be a number > 0, got {v!r}")
+        return f
+
+    if value is None:
+        return 1.0, {}
+    if not isinstance(value, Mapping) and not hasattr(value, "keys"):
+        return factor(value, ""), {}
+    value = dict(value)
+    if "per_object" in value or "global" in value:  # fit_depth_calibration's record
+        default, per = value.get("global", 1.0), value.get("per_object") or {}
+    else:
+        default, per = value.pop("default", 1.0), value
+    out = {}
+    for k, v in dict(per).items():
+        try:
+            oid = int(k)
+        except (TypeError, ValueError):
+            raise error(f"{source}depth_calibration keys must be object ids (or 'default'), got {k!r}") from None
+        out[oid] = factor(v, f"[{k}]")
+    return factor(default, " (default)"), out
+
+
+def _is_number(v) -> bool:
+    try:
+        float(v)
+    except (TypeError, ValueError):
+        return False
+    return True
 
 
 def build_pnp(pnp: Any):
@@ -66,9 +125,11 @@ class PoseEstimatorBase:
     pnp: Any
 
     def _set_options(self, pnp: Any, top_l: int | None, refine_boxes: int, min_confidence: float,
-                     residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0) -> None:
+                     residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
+                     depth_calibration: Any = 1.0) -> None:
         """Check and keep the settings both pipelines take."""
         err = self.input_error
+        self.depth_calibration_default, self.depth_calibration_per_object = parse_depth_calibration(depth_calibration, err)
         try:
             box_scale = float(box_scale)
         except (TypeError, ValueError):
@@ -188,6 +249,7 @@ class PoseEstimatorBase:
         idx = np.asarray(img_idx, dtype=np.int64)
         pts3d = np.stack([np.asarray(self.kpd.keypoints_3d[o], dtype=np.float64).reshape(-1, 3) for o in obj_ids])
         Kn = np.ascontiguousarray(Ks[idx])
+        dscale = self.depth_factors(obj_ids)
         t_kpd = t_pnp = 0.0
         for it in range(self.refine_boxes + 1):
             ta = time.perf_counter()
@@ -200,24 +262,32 @@ class PoseEstimatorBase:
             t_kpd += tb - ta
             t_pnp += time.perf_counter() - tb
             if it < self.refine_boxes:
-                cur = self._boxes_from_poses(est, obj_ids, img_idx, Ks, cur, hw)
+                cur = self._boxes_from_poses(est, obj_ids, img_idx, Ks, cur, hw, dscale)
         used = top_l_mask(conf, self.top_l)
         pose_records(est, boxes, hw, img_idx, obj_ids, scores, kp2d, conf, used, out,
                      points_3d=pts3d, K=Kn, min_confidence=self.min_confidence,
-                     residual_scale_px=self.residual_scale_px)
+                     residual_scale_px=self.residual_scale_px, depth_calibration=dscale)
         self.last_timings = {"detect": 0.0, "kpd": t_kpd, "pnp": t_pnp, "total": t_kpd + t_pnp}
         return out
 
-    def _boxes_from_poses(self, est, obj_ids, img_idx, Ks, boxes: np.ndarray, hw) -> np.ndarray:
+    def depth_factors(self, obj_ids) -> np.ndarray | None:
+        """The ``depth_calibration`` factor of each of ``obj_ids`` (None when every factor is 1)."""
+        f = np.array([self.depth_calibration_per_object.get(int(o), self.depth_calibration_default) for o in obj_ids],
+                     dtype=np.float64)
+        return None if (f == 1.0).all() else f
+
+    def _boxes_from_poses(self, est, obj_ids, img_idx, Ks, boxes: np.ndarray, hw,
+                          depth_calibration: np.ndarray | None = None) -> np.ndarray:
         """Box refinement: each solved instance's box becomes the box of its object's surface points
-        projected with the estimated pose, clipped to the image; failed or degenerate ones keep theirs."""
+        projected with the estimated pose (its translation times ``depth_calibration``), clipped to the image;
+        failed or degenerate ones keep theirs."""
         H, W = int(hw[0]), int(hw[1])
         new = np.array(boxes, dtype=np.float64)
         for n, (oid, b) in enumerate(zip(obj_ids, img_idx)):
             if not bool(est.ok[n]):
                 continue
-            uv, z = project_points(self.object_points(oid), Ks[b], np.asarray(est.R[n]), np.asarray(est.t[n]),
-                                   return_depth=True)
+            t = np.asarray(est.t[n], dtype=np.float64) * (1.0 if depth_calibration is None else depth_calibration[n])
+            uv, z = project_points(self.object_points(oid), Ks[b], np.asarray(est.R[n]), t, return_depth=True)
             if not (z > 0).all() or not np.isfinite(uv).all():
                 continue
             lo, hi = np.clip(uv.min(0), 0, [W, H]), np.clip(uv.max(0), 0, [W, H])

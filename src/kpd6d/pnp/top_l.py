@@ -76,7 +76,8 @@ def solve_top_l(solver, keypoints_3d, keypoints_2d, K, confidences, l: int | Non
 
 
 def pose_records(est, boxes, image_hw, img_idx, obj_ids, scores, keypoints_2d, confidences, used, out, *,
-                 points_3d, K, min_confidence: float = 0.0, residual_scale_px: float | None = None) -> None:
+                 points_3d, K, min_confidence: float = 0.0, residual_scale_px: float | None = None,
+                 depth_calibration: np.ndarray | None = None) -> None:
     """Append one pose dict per instance to ``out[image]`` (the pipelines' output records): ``obj_id``,
     ``R``, ``t``, ``score``, ``keypoints_2d``, ``confidences``, ``used``, ``box``, ``ok``, ``reason``,
     ``confidence`` and ``residual_px`` from the batched PnP result ``est``.
@@ -87,7 +88,8 @@ def pose_records(est, boxes, image_hw, img_idx, obj_ids, scores, keypoints_2d, c
     its default). ``ok`` = PnP ok and ``confidence >= min_confidence``; a pose failing only the
     confidence gate gets NaN R, t too, with the reason. A degenerate detector box
     (:func:`kpd6d.geometry.box_problem` in an image of ``image_hw`` = (H, W)) never gives an ok pose:
-    its R, t become NaN with the reason."""
+    its R, t become NaN with the reason. ``depth_calibration`` (N,) multiplies each reported translation
+    (a depth calibration); the residual and the confidence are those of the PnP pose itself."""
     from kpd6d.geometry import box_problem
     from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX, pose_confidence, reprojection_residuals
 
@@ -107,6 +109,8 @@ def pose_records(est, boxes, image_hw, img_idx, obj_ids, scores, keypoints_2d, c
         if ok[n] and not conf[n] >= min_confidence:
             R[n], t[n], ok[n] = np.nan, np.nan, False
             reasons[n] = f"pose confidence {conf[n]:.3g} is below min_confidence={min_confidence:g}"
+    if depth_calibration is not None:
+        t = t * np.asarray(depth_calibration, dtype=np.float64).reshape(-1, 1)
     for n, b in enumerate(img_idx):
         out[b].append({
             "obj_id": obj_ids[n], "R": R[n], "t": t[n], "score": scores[n],

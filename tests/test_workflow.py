@@ -126,7 +126,7 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
         full = compose("run", overrides=["experiment=lmo", f"objects.models_dir={lmo_dir / 'models'}",
                                          f"evaluate.data_root={lmo_dir}"])
         cfg = compose("run", overrides=[*LMO_TINY, f"objects.models_dir={lmo_dir / 'models'}",
-                                        f"evaluate.data_root={lmo_dir}"])
+                                        f"evaluate.data_root={lmo_dir}", "evaluate.depth_calibration=auto"])
     # the recipe itself: 8 objects, 50 SIFT keypoints (17 on the eggbox), table-top scenes, pretrained backbones
     assert full.objects.obj_ids == [1, 5, 6, 8, 9, 10, 11, 12] and full.designator.name == "sift"
     assert full.designator.num_keypoints == 50 and full.designator_per_object[10].symmetry_aware
@@ -147,3 +147,12 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     assert "Detector on the same frames (2 images" in (run / "eval" / "report.md").read_text()
     assert "detector" not in json.loads((run / "eval_oracle" / "metrics.json").read_text())
     assert json.loads((run / "eval" / "metrics.json").read_text())["run"]["dataset"] == str(lmo_dir)
+    # evaluate.depth_calibration=auto: fitted on the generated val split (with the own detector), then
+    # applied to both real-frame evaluations; the record says whether pairs were found (a tiny
+    # untrained KPD may have none: then it keeps 1.0 and gives the reason)
+    cal = run / "calibration" / "depth_calibration.json"
+    rec = json.loads(cal.read_text())
+    assert rec["global"] > 0 and (rec["fitted"] or "could be paired" in rec["reason"])
+    assert json.loads((run / "calibration" / "metrics.json").read_text())["run"]["split"] == "val"
+    for ev in ("eval", "eval_oracle"):
+        assert json.loads((run / ev / "metrics.json").read_text())["run"]["depth_calibration"] == str(cal)

@@ -181,10 +181,17 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     if bool(cfg.get("fit_depth_calibration", False)) and "mean" in metrics:
         from kpd6d.evaluation.calibration import fit_depth_calibration, write_depth_calibration
 
-        fit = fit_depth_calibration(Path(out_dir) / "results.csv", root, cfg.data.split,
-                                    applied=_depth_calibration(cfg.get("depth_calibration", 1.0)))
+        applied = _depth_calibration(cfg.get("depth_calibration", 1.0))
+        try:
+            fit = fit_depth_calibration(Path(out_dir) / "results.csv", root, cfg.data.split, applied=applied)
+        except ValueError as exc:  # nothing to pair (e.g. an untrained KPD): keep what was applied, say why
+            from kpd6d.pnp.estimator import parse_depth_calibration
+
+            default, per = parse_depth_calibration(applied)
+            fit = {"global": default, "per_object": per, "instances": {}, "fitted": False, "reason": str(exc)}
+            _log(f"WARNING: depth calibration not fitted ({exc}); the record keeps the factors applied")
         path = write_depth_calibration(fit, Path(out_dir) / "depth_calibration.json")
-        _log(f"depth calibration fitted on {root}/{cfg.data.split}: {path} (all objects: {fit['global']:.4f})")
+        _log(f"depth calibration of {root}/{cfg.data.split}: {path} (all objects: {fit['global']:.4f})")
     return metrics
 
 
@@ -193,25 +200,49 @@ def _depth_calibration(value):
     return 1.0 if value is None else to_plain(value)
 
 
-def _evaluate(cfg, root: Path, det, kpd, out_dir: Path) -> dict:
+def _eval_cfg(cfg, root: Path, split: str, det, kpd, **over):
+    """A conf/evaluate.yaml-shaped config from a kpd6d-run config (``over`` replaces entries)."""
     from omegaconf import OmegaConf
 
-    _log(f"evaluating on {root}/{cfg.evaluate.split} (detector: {det})")
-    ecfg = OmegaConf.create({
-        "data": {"root": str(root), "split": cfg.evaluate.split, "targets": "auto", "obj_ids": to_plain(cfg.objects.obj_ids),
+    return OmegaConf.create({
+        "data": {"root": str(root), "split": split, "targets": "auto", "obj_ids": to_plain(cfg.objects.obj_ids),
                  "max_frames": cfg.evaluate.max_frames},
         "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
         "batch_size": cfg_int(cfg, "evaluate.batch_size"), "refine_boxes": to_int(cfg.evaluate.get("refine_boxes", 0) or 0, "evaluate.refine_boxes"),
         "box_scale": cfg_float(cfg, "evaluate.box_scale", 1.0),
         "depth_calibration": _depth_calibration(cfg.evaluate.get("depth_calibration", 1.0)),
-        "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress),
+        "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress), **over,
     })
+
+
+def _evaluate(cfg, root: Path, det, kpd, out_dir: Path, depth_calibration=None) -> dict:
+    _log(f"evaluating on {root}/{cfg.evaluate.split} (detector: {det})")
+    over = {} if depth_calibration is None else {"depth_calibration": depth_calibration}
+    ecfg = _eval_cfg(cfg, root, cfg.evaluate.split, det, kpd, **over)
     extra = None
     if str(det) != "oracle":  # the detector's own AP on the same frames, per object
         _log(f"evaluating the detector on {root}/{cfg.evaluate.split}")
         extra = {"detector": evaluate_detector_on(det, root, cfg.evaluate.split, to_plain(cfg.objects.obj_ids),
                                                   cfg.evaluate.max_frames)}
     return run_evaluation(ecfg, out_dir, extra_metrics=extra)
+
+
+def _auto_depth_calibration(cfg, root: Path, det, kpd, out_dir: Path) -> str:
+    """``evaluate.depth_calibration=auto``: fit it on the run's synthetic validation split with the
+    run's own detector and evaluation settings (``out_dir``: that evaluation and depth_calibration.json;
+    a finished fit is reused)."""
+    out = out_dir / "depth_calibration.json"
+    if out.is_file():
+        return str(out)
+    if not (root / "val").is_dir():
+        raise ValueError(f"evaluate.depth_calibration=auto fits on the generated validation split, and {root}/val "
+                         f"does not exist (data.num_val > 0)")
+    _log(f"fitting the depth calibration on {root}/val (detector: {det})")
+    run_evaluation(_eval_cfg(cfg, root, "val", det, kpd, depth_calibration=1.0, fit_depth_calibration=True,
+                             overlays=0, data={"root": str(root), "split": "val", "targets": "auto",
+                                               "obj_ids": to_plain(cfg.objects.obj_ids), "max_frames": None}),
+                   out_dir)
+    return str(out)
 
 
 def run_experiment(cfg, run_dir: str | Path) -> dict:
@@ -247,9 +278,13 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     # evaluation data: the generated test split, or a BOP dataset of real images (evaluate.data_root)
     eval_root = Path(cfg.evaluate.data_root) if cfg.evaluate.get("data_root") else root
     t0 = time.time()
-    metrics = _evaluate(cfg, eval_root, det, kpd, run_dir / "eval")
+    cal = None
+    if str(cfg.evaluate.get("depth_calibration", 1.0)) == "auto":
+        cal = _auto_depth_calibration(cfg, root, det, kpd, run_dir / "calibration")
+        timings["calibration_s"] = time.time() - t0
+    metrics = _evaluate(cfg, eval_root, det, kpd, run_dir / "eval", cal)
     if cfg.evaluate.get("oracle") and str(det) != "oracle":  # also with ground-truth boxes: the KPD alone
-        oracle = _evaluate(cfg, eval_root, "oracle", kpd, run_dir / "eval_oracle")
+        oracle = _evaluate(cfg, eval_root, "oracle", kpd, run_dir / "eval_oracle", cal)
         metrics["oracle_boxes"] = {"mean": oracle["mean"], "report": str(run_dir / "eval_oracle" / "report.md")}
     timings["evaluate_s"] = time.time() - t0
     timings["total_s"] = time.time() - t_start

@@ -102,6 +102,7 @@ def fit_depth_calibration(results, root: str | os.PathLike, split: str = "val", 
         raise ValueError(f"no estimate in the results could be paired with a ground-truth instance of {root} / "
                          f"{split} (are they of this dataset and split?)")
     return {
+        "fitted": True,
         "global": float(np.median(every)),
         "per_object": {int(o): float(np.median(rs)) for o, rs in sorted(ratios.items()) if len(rs) >= min_instances},
         "instances": {int(o): len(rs) for o, rs in sorted(ratios.items())},

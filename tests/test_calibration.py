@@ -55,7 +55,7 @@ def test_fit_recovers_a_known_depth_bias_per_object(tmp_path):
     results.append(PoseResult(0, 0, 1, 1.0, np.eye(3), np.array([3000.0, 2000.0, 5000.0])))
     results.append(PoseResult(0, 1, 5, 1.0, np.eye(3), np.array([0.0, 0.0, -800.0])))
     csv = write_bop_results(tmp_path / "results.csv", results)
-    fit = fit_depth_calibration(csv, tmp_path, "val", min_instances=10)
+    fit = fit_depth_calibration(csv, tmp_path, "val", per_object=True, min_instances=10)
     for oid, b in BIAS.items():
         assert fit["per_object"][oid] == pytest.approx(1 / b, rel=0.01)  # t_gt = t_est / bias
         assert fit["instances"][oid] == 12
@@ -63,12 +63,16 @@ def test_fit_recovers_a_known_depth_bias_per_object(tmp_path):
         assert lo <= fit["per_object"][oid] <= hi
     assert 1 / BIAS[1] <= fit["global"] <= 1 / BIAS[5]
     # fewer pairs than min_instances: no factor of its own, the global one serves
-    assert fit_depth_calibration(csv, tmp_path, "val", min_instances=13)["per_object"] == {}
+    assert fit_depth_calibration(csv, tmp_path, "val", per_object=True, min_instances=13)["per_object"] == {}
+    # by default one factor for all objects; the per-object medians are reported all the same
+    one = fit_depth_calibration(csv, tmp_path, "val")
+    assert one["per_object"] == {} and one["global"] == fit["global"]
+    assert one["median_per_object"] == pytest.approx(fit["per_object"])
     # estimates made with a factor applied: the fit stays absolute
     applied = {1: 0.5, "default": 2.0}
     scaled = [PoseResult(r.scene_id, r.im_id, r.obj_id, r.score, r.R, r.t * (0.5 if r.obj_id == 1 else 2.0))
               for r in _estimates(gt, np.random.default_rng(0), BIAS, noise=0.0)]
-    fit2 = fit_depth_calibration(scaled, tmp_path, "val", applied=applied)
+    fit2 = fit_depth_calibration(scaled, tmp_path, "val", per_object=True, applied=applied)
     for oid, b in BIAS.items():
         assert fit2["per_object"][oid] == pytest.approx(1 / b, rel=1e-9)
     # the record is what the pipelines read
@@ -149,7 +153,8 @@ def test_evaluate_fit_then_apply_removes_a_depth_bias(tmp_path, monkeypatch):
         cal = tmp_path / "fit" / "depth_calibration.json"
         fit = json.loads(cal.read_text())
         assert fit["instances"] == {"1": 6, "2": 6}  # JSON keys
-        for s in fit["per_object"].values():
+        assert fit["per_object"] == {} and fit["global"] == pytest.approx(1 / 1.1, rel=1e-6)
+        for s in fit["median_per_object"].values():
             assert s == pytest.approx(1 / 1.1, rel=1e-6)
         m_cal = run_evaluation(compose("evaluate", overrides=[*base, f"depth_calibration={cal}"]), tmp_path / "cal")
     assert seen["depth_calibration"] == str(cal)

@@ -13,8 +13,8 @@ ray: its projected centre stays where it is, its projected size changes by ``1 /
 :func:`fit_depth_calibration` pairs each estimate of a BOP results file with the ground-truth instance of
 the same object in the same image whose projected centre is nearest (and near enough: within
 ``max_centre_error`` object diameters at the instance's depth, so a pose of the wrong instance or a
-wild one does not enter), and takes per object the median of ``(t_gt . t_est) / |t_est|^2`` (the
-least-squares scale along the estimated ray).
+wild one does not enter), and takes the median of ``(t_gt . t_est) / |t_est|^2`` (the least-squares
+scale along the estimated ray) over all objects, or per object.
 """
 
 from __future__ import annotations
@@ -49,18 +49,21 @@ def _diameters(root: Path) -> dict[int, float]:
         raise ValueError(f"{path}: every entry needs a numeric 'diameter' ({exc})") from None
 
 
-def fit_depth_calibration(results, root: str | os.PathLike, split: str = "val", *, min_instances: int = 10,
-                    max_centre_error: float = 0.25, min_visib_fract: float = 0.1,
-                    applied: Any = 1.0) -> dict:
-    """Per-object depth factors from the estimates in ``results`` (a BOP results CSV or
+def fit_depth_calibration(results, root: str | os.PathLike, split: str = "val", *, per_object: bool = False,
+                          min_instances: int = 10, max_centre_error: float = 0.25, min_visib_fract: float = 0.1,
+                          applied: Any = 1.0) -> dict:
+    """Depth factors from the estimates in ``results`` (a BOP results CSV or
     :class:`~kpd6d.evaluation.results_io.PoseResult` list) against the ground truth of the BOP
     dataset ``root`` / ``split``.
 
-    Returns ``{"global": s, "per_object": {obj_id: s}, "instances": {obj_id: n}, "iqr": {obj_id: [q25,
-    q75]}, "settings": {...}}``: ``global`` is the median over every paired instance, and an object
-    gets its own factor when it has at least ``min_instances`` pairs. ``applied``: the ``depth_calibration``
-    the estimates were made with (the fitted factors are absolute: applied x measured). The record
-    is what ``depth_calibration=<file>`` of kpd6d-evaluate / kpd6d-predict reads.
+    Returns ``{"fitted": True, "global": s, "per_object": {obj_id: s}, "median_per_object": {obj_id: s},
+    "instances": {obj_id: n}, "iqr": {obj_id: [q25, q75]}, "settings": {...}}``: ``global`` is the
+    median over every paired instance. ``per_object=True`` gives each object with at least
+    ``min_instances`` pairs its own factor (``per_object``); by default every object takes the global
+    one, which did better on held-out synthetic frames at ~50 pairs per object (docs/benchmarks.md,
+    session 10); ``median_per_object`` always reports the per-object medians. ``applied``: the
+    ``depth_calibration`` the estimates were made with (the fitted factors are absolute: applied x
+    measured). The record is what ``depth_calibration=<file>`` of kpd6d-evaluate / kpd6d-predict reads.
     """
     from kpd6d.data import BopDataset
     from kpd6d.pnp.estimator import parse_depth_calibration
@@ -104,10 +107,13 @@ def fit_depth_calibration(results, root: str | os.PathLike, split: str = "val", 
     return {
         "fitted": True,
         "global": float(np.median(every)),
-        "per_object": {int(o): float(np.median(rs)) for o, rs in sorted(ratios.items()) if len(rs) >= min_instances},
+        "per_object": {int(o): float(np.median(rs)) for o, rs in sorted(ratios.items())
+                       if per_object and len(rs) >= min_instances},
+        "median_per_object": {int(o): float(np.median(rs)) for o, rs in sorted(ratios.items())},
         "instances": {int(o): len(rs) for o, rs in sorted(ratios.items())},
         "iqr": {int(o): [float(np.percentile(rs, 25)), float(np.percentile(rs, 75))] for o, rs in sorted(ratios.items())},
-        "settings": {"root": str(root), "split": split, "min_instances": int(min_instances),
+        "settings": {"root": str(root), "split": split, "per_object": bool(per_object),
+                     "min_instances": int(min_instances),
                      "max_centre_error": float(max_centre_error), "min_visib_fract": float(min_visib_fract)},
     }
 

@@ -126,13 +126,15 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
         full = compose("run", overrides=["experiment=lmo", f"objects.models_dir={lmo_dir / 'models'}",
                                          f"evaluate.data_root={lmo_dir}"])
         cfg = compose("run", overrides=[*LMO_TINY, f"objects.models_dir={lmo_dir / 'models'}",
-                                        f"evaluate.data_root={lmo_dir}", "evaluate.depth_calibration=auto"])
+                                        f"evaluate.data_root={lmo_dir}"])
     # the recipe itself: 8 objects, 50 SIFT keypoints (17 on the eggbox), table-top scenes, pretrained backbones
     assert full.objects.obj_ids == [1, 5, 6, 8, 9, 10, 11, 12] and full.designator.name == "sift"
     assert full.designator.num_keypoints == 50 and full.designator_per_object[10].symmetry_aware
     assert full.data.options.layout == "tabletop" and full.data.num_test == 0
     assert full.detector.backbone == "efficientnet_lite0" and full.detector.backbone_pretrained == "imagenet"
     assert full.kpd_stage.backbone.name == "efficientnet_lite0" and full.evaluate.oracle
+    # inference settings chosen on synthetic validation: SQPnP on all keypoints, depth calibration fitted on val
+    assert full.pnp.name == "sqpnp" and full.select.top_l is None and full.evaluate.depth_calibration == "auto"
 
     run = tmp_path / "run"
     m = run_experiment(cfg, run)

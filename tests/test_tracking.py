@@ -12,6 +12,7 @@ in the crop on a visible pixel of the object. Everything else is the production 
 from __future__ import annotations
 
 import hashlib
+import itertools
 import json
 import sys
 
@@ -284,6 +285,35 @@ def test_tracker_reports_lost_and_reacquires_through_the_detector(scene):
     assert tracker.stats["frames"] == len(frames)
 
 
+def test_search_every_limits_the_detector_while_a_track_is_lost(scene):
+    """search_every=3: while the object is out of view or covered, the detector runs on at most every
+    third frame (1, the default, searches on every one); it is still re-acquired after it returns,
+    up to 2 frames later, through the detector."""
+    frames, _ = scene["lost"]
+    runs = {}
+    for n in (1, 3):
+        pipe, det, _ = _pipeline(scene)
+        tracker = PoseTracker(pipe, detect_every=0, search_every=n)
+        out = [tracker.update(f, K) for f in frames]
+        runs[n] = (out, det.calls)
+    def back(out, gone):
+        return next(i for i in range(gone[-1] + 1, len(frames)) if out[i]["poses"][0]["ok"])
+
+    for n, (out, calls) in runs.items():
+        detected = [r["detected"] for r in out]
+        assert calls == sum(detected)
+        for gone in (OUT_OF_VIEW, OCCLUDED):
+            searched = [i for i in range(gone[0], gone[-1] + 1) if detected[i]]
+            # consecutive detector calls while lost are search_every frames apart
+            assert all(b - a >= n for a, b in itertools.pairwise(searched)), (n, searched)
+            # re-acquired through the detector, at most n - 1 frames after searching every frame does
+            i = back(out, gone)
+            assert out[i]["poses"][0]["source"] == "detector" and 0 <= i - back(runs[1][0], gone) <= n - 1
+    assert runs[3][1] < runs[1][1]
+    with pytest.raises(ValueError, match="search_every"):
+        PoseTracker(_pipeline(scene)[0], search_every=0)
+
+
 def test_smoothing_follows_and_smooths(scene):
     frames, poses = scene["follow"]
     raw = [r["poses"][0] for r in track_frames(_pipeline(scene)[0], frames, K)]
@@ -476,6 +506,10 @@ def test_track_override_and_camera_input():
     assert expand_track_override(["input=a.mp4", "track=true", "track.detect_every=5", "track=False"]) == [
         "input=a.mp4", "track.enabled=true", "track.detect_every=5", "track.enabled=false"]
     assert is_camera(0) and is_camera("1") and not is_camera(True) and not is_camera("clip.mp4")
+    from kpd6d.predict import track_options
+
+    assert track_options({"enabled": True, "search_every": "4", "detect_every": 0}) == {"search_every": 4,
+                                                                                      "detect_every": 0}
 
 
 def test_cli_tracks_a_video_with_real_untrained_checkpoints(tmp_path, monkeypatch, capsys):

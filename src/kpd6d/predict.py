@@ -38,7 +38,7 @@ __all__ = ["IMAGE_EXTS", "TRACK_OPTIONS", "VIDEO_EXTS", "corners_from_kpd", "exp
 
 IMAGE_EXTS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")
 VIDEO_EXTS = (".mp4", ".avi", ".mov", ".mkv", ".webm", ".m4v")
-TRACK_OPTIONS = ("detect_every", "lost_threshold", "smoothing", "margin", "min_in_view", "obj_ids")
+TRACK_OPTIONS = ("detect_every", "search_every", "lost_threshold", "smoothing", "margin", "min_in_view", "obj_ids")
 _BOOLS = {"true": "true", "false": "false", "1": "true", "0": "false", "yes": "true", "no": "false", "on": "true",
           "off": "false"}
 
@@ -82,7 +82,7 @@ def track_options(node) -> dict | None:
         out = {k: v for k, v in d.items() if v is not None}
         if "obj_ids" in out:
             out["obj_ids"] = [int(o) for o in out["obj_ids"]]
-        for k in ("detect_every",):
+        for k in ("detect_every", "search_every"):
             if k in out:
                 out[k] = to_int(out[k], f"track.{k}")
         for k in ("lost_threshold", "smoothing", "margin", "min_in_view"):

@@ -1,7 +1,7 @@
 """Pose tracking over video / camera frames: the detector only when needed, KPD + PnP every frame.
 
 :class:`PoseTracker` ``(pipeline, detect_every=0, lost_threshold=0.3, smoothing=0.0, margin=0.15,
-min_in_view=0.3, obj_ids=None)`` holds one track per object id; ``tracker.update(image, K)`` processes
+min_in_view=0.3, obj_ids=None, search_every=1)`` holds one track per object id; ``tracker.update(image, K)`` processes
 the next frame and returns ``{"frame", "detected", "detector_calls", "poses"}``.
 :func:`track_frames` runs it over an iterable of frames. ``pipeline`` is a
 :class:`kpd6d.pipeline.PosePipeline` or a :class:`kpd6d.deploy.runtime.RuntimePipeline`: the tracker
@@ -15,9 +15,10 @@ Per frame:
    (unsmoothed) pose, grown by ``margin`` (``1 + margin`` times its width and height, same centre)
    and clipped to the image. A track whose projected box lies less than ``min_in_view`` inside the
    image (or behind the camera) is lost before the KPD runs;
-2. the detector runs on the first frame, when no track is active, when a track is lost, when an
-   object of ``obj_ids`` has no active track, and every ``detect_every`` frames (0: only when
-   needed). On such a frame a detected object is estimated from its detection box (its highest
+2. the detector runs on the first frame; while no track is active, a track is lost or an object of
+   ``obj_ids`` has no active track, at most every ``search_every`` frames (1: every frame; more
+   spares the detector while an object stays out of view, at the cost of up to ``search_every - 1``
+   frames of re-acquisition delay); and every ``detect_every`` frames (0: only when needed). On such a frame a detected object is estimated from its detection box (its highest
    score; one instance per object id), an active track not detected from its own box;
 3. one ``predict_boxes`` call estimates every box. A pose is ``ok`` when the pipeline says ok, its
    ``confidence`` (the pipeline's, :mod:`kpd6d.pnp.confidence`) is at least ``lost_threshold`` and its
@@ -164,13 +165,17 @@ class PoseTracker:
     """Tracks the objects in a stream of frames with a pose ``pipeline`` (module docstring)."""
 
     def __init__(self, pipeline, *, detect_every: int = 0, lost_threshold: float = 0.3, smoothing: float = 0.0,
-                 margin: float = 0.15, min_in_view: float = 0.3, obj_ids: Iterable[int] | None = None) -> None:
+                 margin: float = 0.15, min_in_view: float = 0.3, obj_ids: Iterable[int] | None = None,
+                 search_every: int = 1) -> None:
         for name in ("detect", "predict_boxes", "object_points"):
             if not hasattr(pipeline, name):
                 raise TypeError(f"tracking needs a pipeline with .{name}() (PosePipeline or RuntimePipeline), "
                                 f"got {type(pipeline).__name__}")
         if int(detect_every) < 0:
             raise ValueError(f"detect_every must be >= 0 (0: only when needed), got {detect_every}")
+        if int(search_every) < 1:
+            raise ValueError(f"search_every must be >= 1 (1: search on every frame while a track is lost), "
+                             f"got {search_every}")
         if not 0.0 <= float(lost_threshold) <= 1.0:
             raise ValueError(f"lost_threshold must be in [0, 1], got {lost_threshold}")
         if not 0.0 <= float(smoothing) < 1.0:
@@ -181,6 +186,7 @@ class PoseTracker:
             raise ValueError(f"min_in_view must be in (0, 1], got {min_in_view}")
         self.pipeline = pipeline
         self.detect_every, self.lost_threshold = int(detect_every), float(lost_threshold)
+        self.search_every = int(search_every)
         self.smoothing, self.margin, self.min_in_view = float(smoothing), float(margin), float(min_in_view)
         self.obj_ids = None if obj_ids is None else [int(o) for o in obj_ids]
         if self.obj_ids is not None:
@@ -204,13 +210,14 @@ class PoseTracker:
         return self._points[oid]
 
     def _needs_detection(self, active: dict[int, Track]) -> bool:
-        if self.last_detection is None or not active:
+        if self.last_detection is None:
             return True
-        if any(tr.lost for tr in self.tracks.values()):
+        since = self.frame - self.last_detection
+        searching = (not active or any(tr.lost for tr in self.tracks.values())
+                     or (self.obj_ids is not None and any(o not in active for o in self.obj_ids)))
+        if searching and since >= self.search_every:  # a lost or missing object: search, at most this often
             return True
-        if self.obj_ids is not None and any(o not in active for o in self.obj_ids):
-            return True
-        return self.detect_every > 0 and self.frame - self.last_detection >= self.detect_every
+        return self.detect_every > 0 and since >= self.detect_every
 
     def update(self, image: np.ndarray, K, targets: dict | None = None) -> dict[str, Any]:
         """Process the next frame (uint8 (H, W, 3) RGB, intrinsics ``K`` (3, 3)); ``targets`` goes to the

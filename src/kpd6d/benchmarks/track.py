@@ -408,7 +408,7 @@ def score(video: Video, objects, run: dict) -> dict:
 
 
 def benchmark(pipeline, video: Video, objects, *, detect_every: int = 10, lost_threshold: float = 0.3,
-              smoothing: float = 0.0, warmup: int = 3, modes=MODES) -> dict:
+              smoothing: float = 0.0, warmup: int = 3, modes=MODES, search_every: int = 1) -> dict:
     """Both modes over ``video`` (``objects``: its :class:`ObjectModel`\\ s, for the GT metrics):
     ``{"video": {...}, "settings": {...}, "modes": [report per mode, with "mode"]}``."""
     unknown = [m for m in modes if m not in MODES]
@@ -423,14 +423,15 @@ def benchmark(pipeline, video: Video, objects, *, detect_every: int = 10, lost_t
     for mode in modes:
         if mode == "tracked":
             run = run_tracked(pipeline, video, detect_every=detect_every, lost_threshold=lost_threshold,
-                              smoothing=smoothing, warmup=warmup)
+                              smoothing=smoothing, warmup=warmup, search_every=search_every)
         else:
             run = run_detect_every_frame(pipeline, video, lost_threshold=lost_threshold, warmup=warmup)
             calibration = calibrate(video, objects, run["raw"])
         rows.append({"mode": mode, **score(video, objects, run)})
     return {"video": {"frames": len(video.frames), "width": int(W), "height": int(H), "obj_ids": video.obj_ids,
                       "K": np.asarray(video.K).tolist(), "leave": list(video.leave) if video.leave else None},
-            "settings": {"detect_every": int(detect_every), "lost_threshold": float(lost_threshold),
+            "settings": {"detect_every": int(detect_every), "search_every": int(search_every),
+                         "lost_threshold": float(lost_threshold),
                          "smoothing": float(smoothing), "warmup": int(warmup), "oracle": _is_oracle(pipeline)},
             "modes": rows, "calibration": calibration}
 
@@ -513,6 +514,8 @@ def _parser() -> argparse.ArgumentParser:
     p.add_argument("--frames", type=int, default=150)
     p.add_argument("--detect-every", type=int, default=10, help="tracked mode: the detector every N frames as well "
                                                                 "(0: only when needed)")
+    p.add_argument("--search-every", type=int, default=1, help="tracked mode: while a track is lost, the detector "
+                                                                "at most every N frames (1: every frame)")
     p.add_argument("--lost-threshold", type=float, default=0.3, help="a pose below this confidence is lost / not ok")
     p.add_argument("--smoothing", type=float, default=0.0, help="the tracker's SE(3) smoothing alpha in [0, 1)")
     p.add_argument("--threads", type=int, default=None, help="torch / runtime CPU threads (default: their choice)")
@@ -536,6 +539,8 @@ def main(argv: list[str] | None = None) -> int:
     for name in ("detect_every", "warmup"):
         if getattr(a, name) < 0:
             p.error(f"--{name.replace('_', '-')} must be >= 0, got {getattr(a, name)}")
+    if a.search_every < 1:
+        p.error(f"--search-every must be >= 1, got {a.search_every}")
     try:
         leave_range(a.frames, a.leave)
     except ValueError as exc:
@@ -604,7 +609,7 @@ def main(argv: list[str] | None = None) -> int:
         objects = _load_objects(a.models_dir, ids)
         video = make_video(objects, LINEMOD_K, LINEMOD_IMAGE_SIZE, a.frames, seed=a.seed, leave=a.leave)
         report = benchmark(pipe, video, objects, detect_every=a.detect_every, lost_threshold=a.lost_threshold,
-                           smoothing=a.smoothing, warmup=a.warmup)
+                           smoothing=a.smoothing, warmup=a.warmup, search_every=a.search_every)
     except (ModelError, ValueError) as exc:
         p.error(str(exc))
     report["settings"].update(backend=a.backend, pnp=a.pnp, top_l=a.top_l, threads=a.threads, seed=a.seed,
@@ -619,6 +624,7 @@ def main(argv: list[str] | None = None) -> int:
           f"({source}), seed {a.seed}" + (f", {a.leave} frames out of view" if a.leave else ""))
     print(f"backend {a.backend} on {report['settings']['device']} ({platform.processor() or 'cpu'}, "
           f"{threads or 'default'} threads); {a.pnp}, top-{a.top_l}; tracked: detect_every={a.detect_every}, "
+          f"search_every={a.search_every}, "
           f"lost_threshold={a.lost_threshold:g}, smoothing={a.smoothing:g}; {a.warmup} warm-up frames untimed")
     print(format_table(report))
     if report.get("calibration"):

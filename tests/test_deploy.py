@@ -380,3 +380,29 @@ def test_a_missing_backend_package_says_what_to_install(backend, tmp_path, monke
         Session(tmp_path / "m.onnx", backend)
     with pytest.raises(ValueError, match="backend 'tensorrt' unknown"):
         Session(tmp_path / "m.onnx", "tensorrt")
+
+
+def test_openvino_bf16_compiles_in_bfloat16_and_stays_close_to_torch(models):
+    """backend=openvino_bf16: OpenVINO with INFERENCE_PRECISION_HINT=bf16 where the CPU has bf16
+    (f32 elsewhere); heatmaps within bf16's precision of torch's float32 (not the 1e-4 of f32)."""
+    _require("openvino")
+    import openvino as ov
+
+    from kpd6d.deploy import BACKENDS as ALL
+    from kpd6d.deploy.runtime import Session
+
+    assert "openvino_bf16" in ALL
+    sess = Session(models["export"] / "kpd.onnx", "openvino_bf16")
+    caps = ov.Core().get_property("CPU", "OPTIMIZATION_CAPABILITIES")
+    hint = sess._compiled.get_property("INFERENCE_PRECISION_HINT")
+    hint = "bf16" if hint == ov.Type.bf16 else "f32" if hint == ov.Type.f32 else str(hint)
+    assert hint == ("bf16" if "BF16" in caps else "f32"), (hint, caps)
+    x = torch.rand(4, 3, 64, 64, generator=torch.Generator().manual_seed(3))
+    with torch.no_grad():
+        ref = models["kpd"].net(x).numpy()
+    got = sess(x.numpy())[0]
+    scale = np.abs(ref).max()
+    err = np.abs(got - ref).max()
+    assert err <= 0.05 * scale, (err, scale)  # bf16 keeps 8 bits of mantissa
+    if hint == "bf16":
+        assert err > 1e-5  # and it is not float32 in disguise

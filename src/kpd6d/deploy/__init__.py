@@ -16,6 +16,6 @@ from __future__ import annotations
 __all__ = ["BACKENDS", "SIDECAR"]
 
 #: inference backends of PosePipeline / kpd6d-evaluate / kpd6d-predict
-BACKENDS = ("torch", "onnxruntime", "openvino")
+BACKENDS = ("torch", "onnxruntime", "openvino", "openvino_bf16")
 #: the sidecar file name in an export folder
 SIDECAR = "kpd6d_export.json"

@@ -11,9 +11,11 @@ the oracle's GT boxes) → crops (numpy bilinear, the codec's affine) → ``kpd.
 decoder in numpy (:mod:`kpd6d.kpd.decoders_numpy`) → top-l → PnP
 (``PNP_SOLVERS``, numpy / OpenCV).
 
-Backends: ``onnxruntime`` (``CPUExecutionProvider``) and ``openvino`` (reads the ONNX files; CPU,
+Backends: ``onnxruntime`` (``CPUExecutionProvider``), ``openvino`` (reads the ONNX files; CPU,
 ``INFERENCE_PRECISION_HINT=f32`` so that results match torch's float32 — OpenVINO picks bf16 on CPUs
-that have it otherwise). ``threads``: intra-op threads (None: the backend's default).
+that have it otherwise) and ``openvino_bf16`` (the same with ``INFERENCE_PRECISION_HINT=bf16``: about
+1.6x faster networks on CPUs with AMX / AVX512-BF16, outputs no longer equal to torch's; its
+accuracy cost is measured in docs/benchmarks.md, session 10). ``threads``: intra-op threads (None: the backend's default).
 """
 
 from __future__ import annotations
@@ -46,7 +48,7 @@ from kpd6d.pnp.estimator import PoseEstimatorBase
 __all__ = ["RUNTIME_BACKENDS", "BackendUnavailableError", "RuntimeDetector", "RuntimeKPD", "RuntimePipeline",
            "Session", "read_sidecar"]
 
-RUNTIME_BACKENDS = ("onnxruntime", "openvino")
+RUNTIME_BACKENDS = ("onnxruntime", "openvino", "openvino_bf16")
 
 
 class BackendUnavailableError(ImportError):
@@ -76,6 +78,8 @@ class Session:
         if backend not in RUNTIME_BACKENDS:
             raise ValueError(f"backend {backend!r} unknown; the runtime has {', '.join(RUNTIME_BACKENDS)} "
                              "(backend=torch runs the checkpoints: PosePipeline.from_checkpoints)")
+        if backend == "openvino_bf16":
+            backend, precision = "openvino", "bf16"
         path = Path(path)
         if not path.is_file():
             raise FileNotFoundError(f"ONNX model {str(path)!r} does not exist")

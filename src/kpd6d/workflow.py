@@ -200,13 +200,14 @@ def _depth_calibration(value):
     return 1.0 if value is None else to_plain(value)
 
 
-def _eval_cfg(cfg, root: Path, split: str, det, kpd, **over):
-    """A conf/evaluate.yaml-shaped config from a kpd6d-run config (``over`` replaces entries)."""
+def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
+    """A conf/evaluate.yaml-shaped config from a kpd6d-run config (``over`` replaces entries;
+    ``max_frames``: the run's ``evaluate.max_frames`` unless given)."""
     from omegaconf import OmegaConf
 
     return OmegaConf.create({
         "data": {"root": str(root), "split": split, "targets": "auto", "obj_ids": to_plain(cfg.objects.obj_ids),
-                 "max_frames": cfg.evaluate.max_frames},
+                 "max_frames": cfg.evaluate.max_frames if max_frames == "run" else max_frames},
         "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
         "batch_size": cfg_int(cfg, "evaluate.batch_size"), "refine_boxes": to_int(cfg.evaluate.get("refine_boxes", 0) or 0, "evaluate.refine_boxes"),
         "box_scale": cfg_float(cfg, "evaluate.box_scale", 1.0),
@@ -238,10 +239,8 @@ def _auto_depth_calibration(cfg, root: Path, det, kpd, out_dir: Path) -> str:
         raise ValueError(f"evaluate.depth_calibration=auto fits on the generated validation split, and {root}/val "
                          f"does not exist (data.num_val > 0)")
     _log(f"fitting the depth calibration on {root}/val (detector: {det})")
-    run_evaluation(_eval_cfg(cfg, root, "val", det, kpd, depth_calibration=1.0, fit_depth_calibration=True,
-                             overlays=0, data={"root": str(root), "split": "val", "targets": "auto",
-                                               "obj_ids": to_plain(cfg.objects.obj_ids), "max_frames": None}),
-                   out_dir)
+    run_evaluation(_eval_cfg(cfg, root, "val", det, kpd, max_frames=None, depth_calibration=1.0,
+                             fit_depth_calibration=True, overlays=0), out_dir)
     return str(out)
 
 

@@ -70,13 +70,7 @@ def parse_depth_calibration(value: Any, error: type[Exception] = ValueError) -> 
             raise error(f"depth_calibration file {os.fspath(value)} cannot be read as JSON: {exc}") from None
 
     def factor(v, what):
-        try:
-            f = float(v)
-        except (TypeError, ValueError):
-            raise error(f"{source}depth_calibration{what} must be a number > 0, got {v!r}") from None
-        if not (math.isfinite(f) and f > 0):
-            raise error(f"{source}depth_calibration{what} must be a number > 0, got {v!r}")
-        return f
+        return _positive_number(v, f"{source}depth_calibration{what}", error)
 
     if value is None:
         return 1.0, {}
@@ -95,6 +89,17 @@ def parse_depth_calibration(value: Any, error: type[Exception] = ValueError) -> 
             raise error(f"{source}depth_calibration keys must be object ids (or 'default'), got {k!r}") from None
         out[oid] = factor(v, f"[{k}]")
     return factor(default, " (default)"), out
+
+
+def _positive_number(v, name: str, error: type[Exception]) -> float:
+    """``float(v)`` when it is finite and > 0; else ``error`` naming ``name`` and the value."""
+    try:
+        f = float(v)
+    except (TypeError, ValueError):
+        raise error(f"{name} must be a number > 0, got {v!r}") from None
+    if not (math.isfinite(f) and f > 0):
+        raise error(f"{name} must be a number > 0, got {v!r}")
+    return f
 
 
 def _is_number(v) -> bool:
@@ -130,13 +135,7 @@ class PoseEstimatorBase:
         """Check and keep the settings both pipelines take."""
         err = self.input_error
         self.depth_calibration_default, self.depth_calibration_per_object = parse_depth_calibration(depth_calibration, err)
-        try:
-            box_scale = float(box_scale)
-        except (TypeError, ValueError):
-            raise err(f"box_scale must be a number > 0, got {box_scale!r}") from None
-        if not (math.isfinite(box_scale) and box_scale > 0):
-            raise err(f"box_scale must be a number > 0, got {box_scale!r}")
-        self.box_scale = box_scale
+        self.box_scale = _positive_number(box_scale, "box_scale", err)
         if top_l is not None and int(top_l) < 4:
             raise err(f"top_l must be >= 4 (PnP needs at least 4 points) or None, got {top_l}")
         if int(refine_boxes) < 0:

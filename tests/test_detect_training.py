@@ -252,6 +252,10 @@ def test_module_rejects_bad_settings():
         DetectorModule(cfg, optimizer={"learning_rate": 1})
     with pytest.raises(ValueError, match="unknown augment setting"):
         DetectorModule(cfg, augment={"flip": 0.5})
+    with pytest.raises(ValueError, match=r"augment.photometric: unknown photometric setting\(s\) \['sharpness'\]"):
+        DetectorModule(cfg, augment={"photometric": {"sharpness": 2.0}})
+    m = DetectorModule(cfg, augment={"photometric": {"contrast": 1.4}})
+    assert m.aug_cfg["photometric"]["contrast"] == 1.4 and m.aug_cfg["photometric"]["blur_p"] == 0.0
     with pytest.raises(ValueError, match="not trainable"):
         DetectorModule({"name": "oracle"})
 

@@ -80,6 +80,12 @@ def random_scale_shift(images: torch.Tensor, targets: list[dict], generator: tor
 
 
 def augment_batch(images: torch.Tensor, targets: list[dict], generator: torch.Generator, hsv: float = 1.5,
-                  hue: float = 0.0, scale: float = 0.2, translate: float = 0.0):
+                  hue: float = 0.0, scale: float = 0.2, translate: float = 0.0, photometric: dict | None = None):
+    """HSV jitter, then (``photometric``: :func:`kpd6d.photo_augment.check_photometric`'s dict; None:
+    none) the camera-response, blur and noise changes, then the random scale / shift."""
     images = hsv_jitter(images, generator, hsv, hue)
+    if photometric is not None:
+        from kpd6d.photo_augment import photometric_batch
+
+        images = photometric_batch(images, photometric, generator)
     return random_scale_shift(images, targets, generator, scale, translate)

@@ -24,7 +24,8 @@ __all__ = ["DEFAULT_AUGMENT", "DEFAULT_OPTIMIZER", "DEFAULT_SCHEDULER", "Detecto
 DEFAULT_OPTIMIZER = {"name": "sgd", "lr": 1e-3, "momentum": 0.9, "weight_decay": 5e-4}
 DEFAULT_SCHEDULER = {"name": "step", "step_size": 100, "gamma": 0.1}
 #: HSV changes up to 1.5x, random scale ±20%.
-DEFAULT_AUGMENT = {"enabled": True, "hsv": 1.5, "hue": 0.0, "scale": 0.2, "translate": 0.0}
+DEFAULT_AUGMENT = {"enabled": True, "hsv": 1.5, "hue": 0.0, "scale": 0.2, "translate": 0.0,
+                   "photometric": None}  # kpd6d.photo_augment settings (camera response, blur, noise); None: off
 
 #: the flat optimiser dictionary of earlier versions (optimiser and schedule in one node)
 _LEGACY_OPTIMIZER = {"name": "sgd", "lr": 1e-3, "momentum": 0.9, "weight_decay": 5e-4, "schedule": "step",
@@ -95,6 +96,10 @@ class DetectorModule(pl.LightningModule):
         if unknown:
             raise ValueError(f"unknown augment setting(s) {sorted(unknown)}; known: {sorted(DEFAULT_AUGMENT)}")
         self.aug_cfg = {**DEFAULT_AUGMENT, **(augment or {})}
+        if self.aug_cfg["photometric"] is not None:
+            from kpd6d.photo_augment import check_photometric
+
+            self.aug_cfg["photometric"] = check_photometric(self.aug_cfg["photometric"], "augment.photometric")
         self.eval_score_threshold = float(eval_score_threshold)
         self.stats_path = stats_path
         self._seed = int(seed)
@@ -135,7 +140,8 @@ class DetectorModule(pl.LightningModule):
             from kpd6d.detection.augment import augment_batch
 
             a = self.aug_cfg
-            images, targets = augment_batch(images, targets, self._gen, a["hsv"], a["hue"], a["scale"], a["translate"])
+            images, targets = augment_batch(images, targets, self._gen, a["hsv"], a["hue"], a["scale"], a["translate"],
+                                            a["photometric"])
         if self.channels_last:
             images = images.contiguous(memory_format=torch.channels_last)
         losses = self.detector.training_losses(images, targets)

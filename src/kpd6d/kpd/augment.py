@@ -7,7 +7,9 @@
    integer coordinates) are moved with the very same 3×3 matrix (``transform_matrix``);
 2. colour: hue and saturation (``ColorJiggle``) and exposure (brightness factor in
    ``[1/exposure, exposure]``, the paper's ×1.5);
-3. Gaussian blur, Gaussian noise, random erasing (occlusion).
+3. Gaussian blur, Gaussian noise, random erasing (occlusion);
+4. optionally, the camera-response changes of :func:`kpd6d.photo_augment.photometric_batch`
+   (``contrast``, ``gamma``, ``channel_gain``; off by default), before the colour step.
 
 Heatmap targets must be made *after* this step from the returned keypoints.
 """
@@ -27,9 +29,15 @@ class BatchAugment(nn.Module):
                  blur_p: float = 0.2, blur_sigma: tuple[float, float] = (0.1, 1.5), noise_p: float = 0.2,
                  noise_std: float = 0.02, erase_p: float = 0.3, erase_scale: tuple[float, float] = (0.02, 0.15),
                  rotation_deg: float = 0.0, scale: tuple[float, float] | None = None,
-                 translate: float = 0.0, geometric_p: float = 0.5) -> None:
+                 translate: float = 0.0, geometric_p: float = 0.5, contrast: float = 1.0, gamma: float = 1.0,
+                 channel_gain: float = 0.0) -> None:
         super().__init__()
         import kornia.augmentation as KA
+
+        from kpd6d.photo_augment import check_photometric
+
+        self.camera = check_photometric({"contrast": contrast, "gamma": gamma, "channel_gain": channel_gain})
+        self.camera_on = contrast > 1 or gamma > 1 or channel_gain > 0
 
         if exposure < 1 or saturation < 1:
             raise ValueError(f"augment: exposure and saturation are factors >= 1, got {exposure}, {saturation}")
@@ -58,6 +66,10 @@ class BatchAugment(nn.Module):
             M = self.geometric.transform_matrix.to(x.dtype)
             if keypoints is not None:
                 keypoints = affine_apply(M[:, :2, :].to(keypoints.dtype), keypoints)
+        if self.camera_on:
+            from kpd6d.photo_augment import photometric_batch
+
+            x = photometric_batch(x, self.camera)
         if self.color is not None:
             x = self.color(x)
         if self.exposure > 1 and self.color_p > 0:

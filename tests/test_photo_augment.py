@@ -1,0 +1,99 @@
+"""Training-time photometric augmentation (kpd6d.photo_augment), shared by the detector and the KPD."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+import torch
+
+from kpd6d.photo_augment import check_photometric, gaussian_blur_batch, photometric_batch
+
+
+def _images(B=4, H=40, W=50, lo=0.3, hi=0.7, seed=0):
+    g = torch.Generator().manual_seed(seed)
+    return torch.rand((B, 3, H, W), generator=g) * (hi - lo) + lo
+
+
+def test_check_names_unknown_and_bad_settings():
+    with pytest.raises(ValueError, match=r"unknown photometric setting\(s\) \['contrst'\].*contrast"):
+        check_photometric({"contrst": 1.2})
+    with pytest.raises(ValueError, match=r"augment.photometric.gamma is a factor >= 1"):
+        check_photometric({"gamma": 0.8}, "augment.photometric")
+    with pytest.raises(ValueError, match="blur_p is a probability"):
+        check_photometric({"blur_p": 1.5})
+    with pytest.raises(ValueError, match="blur_sigma"):
+        check_photometric({"blur_sigma": [2.0, 1.0]})
+    with pytest.raises(ValueError, match="channel_gain"):
+        check_photometric({"channel_gain": 1.0})
+
+
+def test_all_off_is_the_identity():
+    x = _images()
+    assert photometric_batch(x, check_photometric({})) is x
+
+
+def test_contrast_scales_about_the_image_mean():
+    x = _images()
+    y = photometric_batch(x, check_photometric({"contrast": 1.5}), torch.Generator().manual_seed(1))
+    # mid-range images: nothing clipped, so the mean is kept and deviations scale by one factor per image
+    torch.testing.assert_close(y.mean(dim=(1, 2, 3)), x.mean(dim=(1, 2, 3)), atol=1e-5, rtol=0)
+    dx, dy = x - x.mean(dim=(1, 2, 3), keepdim=True), y - y.mean(dim=(1, 2, 3), keepdim=True)
+    c = (dy * dx).sum(dim=(1, 2, 3)) / (dx * dx).sum(dim=(1, 2, 3))
+    torch.testing.assert_close(dy, dx * c[:, None, None, None], atol=1e-5, rtol=0)
+    assert ((c >= 1 / 1.5 - 1e-6) & (c <= 1.5 + 1e-6)).all() and c.std() > 0  # drawn per image
+
+
+def test_channel_gain_and_gamma_are_per_image_per_channel_factors():
+    x = _images()
+    y = photometric_batch(x, check_photometric({"channel_gain": 0.2}), torch.Generator().manual_seed(2))
+    ratio = y / x  # one gain per (image, channel)
+    torch.testing.assert_close(ratio, ratio[:, :, :1, :1].expand_as(ratio), atol=1e-5, rtol=0)
+    assert ((ratio - 1).abs() <= 0.2 + 1e-5).all() and (ratio - 1).abs().max() > 0.02
+    z = photometric_batch(x, check_photometric({"gamma": 1.4}), torch.Generator().manual_seed(3))
+    g = torch.log(z) / torch.log(x)  # one exponent per image
+    torch.testing.assert_close(g, g[:, :1, :1, :1].expand_as(g), atol=1e-4, rtol=0)
+    assert ((g >= 1 / 1.4 - 1e-4) & (g <= 1.4 + 1e-4)).all()
+
+
+def test_blur_matches_opencv():
+    x = torch.rand((2, 3, 30, 36), generator=torch.Generator().manual_seed(4))
+    sigma = torch.tensor([0.8, 1.7])
+    y = gaussian_blur_batch(x, sigma)
+    r = int(np.ceil(3 * 1.7))
+    for b, s in enumerate(sigma.tolist()):
+        img = x[b].permute(1, 2, 0).numpy()
+        ref = cv2.GaussianBlur(img, (2 * r + 1, 2 * r + 1), s, borderType=cv2.BORDER_REFLECT_101)
+        np.testing.assert_allclose(y[b].permute(1, 2, 0).numpy(), ref, atol=2e-5)
+    torch.testing.assert_close(gaussian_blur_batch(x, torch.zeros(2)), x)  # sigma 0: unchanged
+
+
+def test_blur_and_noise_probabilities_and_seeding():
+    x = _images(B=64)
+    cfg = check_photometric({"blur_p": 0.5, "blur_sigma": [1.0, 2.0], "noise_p": 0.5, "noise_std": 0.05})
+    y1 = photometric_batch(x, cfg, torch.Generator().manual_seed(5))
+    y2 = photometric_batch(x, cfg, torch.Generator().manual_seed(5))
+    torch.testing.assert_close(y1, y2)  # the generator makes a run repeatable
+    changed = (y1 - x).abs().flatten(1).max(1).values > 1e-6
+    assert 10 < int(changed.sum()) < 64  # some images left alone: each effect has its probability
+    # noise alone: zero-mean, std up to noise_std
+    n = photometric_batch(x, check_photometric({"noise_p": 1.0, "noise_std": 0.05}), torch.Generator().manual_seed(6))
+    d = (n - x).flatten(1)
+    assert d.mean().abs() < 2e-3 and (d.std(1) <= 0.05 * 1.05).all() and d.std(1).max() > 0.02
+
+
+def test_both_stages_apply_it():
+    from kpd6d.detection.augment import augment_batch
+    from kpd6d.kpd.augment import BatchAugment
+
+    x = _images(B=2, H=48, W=64)
+    targets = [{"boxes": torch.tensor([[10.0, 10.0, 20.0, 15.0]]), "labels": torch.tensor([1])}] * 2
+    cfg = check_photometric({"contrast": 1.5, "channel_gain": 0.2})
+    y, t = augment_batch(x, targets, torch.Generator().manual_seed(0), hsv=1.0, scale=0.0, photometric=cfg)
+    assert not torch.allclose(y, x) and torch.equal(t[0]["boxes"], targets[0]["boxes"])
+    aug = BatchAugment(hue=0, saturation=1, exposure=1, blur_p=0, noise_p=0, erase_p=0, contrast=1.5, channel_gain=0.2)
+    kps = torch.rand(2, 5, 2) * 40
+    y, k, _ = aug(x, kps)
+    assert not torch.allclose(y, x) and torch.equal(k, kps)  # photometric only: keypoints stay
+    with pytest.raises(ValueError, match="gamma"):
+        BatchAugment(gamma=0.5)

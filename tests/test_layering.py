@@ -58,7 +58,7 @@ SRC = Path(__file__).resolve().parents[1] / "src" / "kpd6d"
 LAYERS: list[tuple[str, ...]] = [
     ("io", "geometry", "registry", "config", "paths"),
     ("objects", "symmetry", "render", "pnp", "visualize", "pretrained", "schedules", "ema", "finetune",
-     "box_errors", "distributed"),
+     "box_errors", "distributed", "photo_augment"),
     ("training",),
     ("keypoints",),
     ("data", "synth"),

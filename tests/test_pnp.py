@@ -17,7 +17,7 @@ from kpd6d.pnp import BatchPoseEstimate, PoseEstimate
 from kpd6d.pnp.checks import diagnose_solutions
 from kpd6d.registry import PNP_SOLVERS, build_from_cfg
 
-SOLVERS = ["epnp", "iterative", "sqpnp", "epnp_ransac", "dlt", "weighted_lm"]
+SOLVERS = ["epnp", "iterative", "sqpnp", "epnp_ransac", "sqpnp_ransac", "dlt", "weighted_lm"]
 
 
 def random_pose(rng):
@@ -97,6 +97,55 @@ def test_ransac_matches_least_squares_on_true_inliers(lmo_points):
         assert not (est.inliers & ~true_in).any()  # no gross outlier accepted
     assert good >= 95, good
     assert np.mean(inlier_recall) > 0.97
+
+
+def test_sqpnp_ransac_is_sqpnp_on_the_true_inliers(lmo_points):
+    """1.5 px noise + 20 % gross outliers: sqpnp_ransac keeps every true inlier (its threshold follows the
+    object's size) and rejects every outlier, so its pose is OpenCV's SQPnP on exactly the true inliers;
+    plain SQPnP on all points is pulled off by the outliers. Without outliers it is SQPnP on all points."""
+    rng = np.random.default_rng(12)
+    robust, plain = PNP_SOLVERS.build("sqpnp_ransac"), PNP_SOLVERS.build("sqpnp")
+    models = list(lmo_points.values())
+    worse_plain = 0
+    for trial in range(40):
+        model, X = models[trial % len(models)]
+        R, t = random_pose(rng)
+        clean = project_points(X, LINEMOD_K, R, t) + rng.normal(0, 1.5, (50, 2))
+        d = float(np.linalg.norm(clean.max(0) - clean.min(0)))
+        uv = clean.copy()
+        out = rng.choice(50, 10, replace=False)
+        angle = rng.uniform(0, 2 * np.pi, 10)
+        uv[out] += rng.uniform(0.3, 0.6) * d * np.c_[np.cos(angle), np.sin(angle)]  # gross outliers
+        true_in = np.ones(50, dtype=bool)
+        true_in[out] = False
+        est = robust(X, uv, LINEMOD_K)
+        assert est.ok, est.reason
+        assert est.inliers.tolist() == true_in.tolist(), trial
+        ok, rvec, tvec = cv2.solvePnP(X[true_in], uv[true_in], LINEMOD_K, None, flags=cv2.SOLVEPNP_SQPNP)
+        assert ok
+        assert np.allclose(est.R, cv2.Rodrigues(rvec)[0], atol=1e-9) and np.allclose(est.t, tvec.ravel(), atol=1e-6)
+        e_robust = add_error(est.R, est.t, R, t, model.vertices)
+        p = plain(X, uv, LINEMOD_K)
+        worse_plain += (not p.ok) or add_error(p.R, p.t, R, t, model.vertices) > 2 * e_robust
+        # no outliers: every point is an inlier and the result is SQPnP on all of them
+        est0, p0 = robust(X, clean, LINEMOD_K), plain(X, clean, LINEMOD_K)
+        assert est0.ok and est0.inliers.all() and np.allclose(est0.t, p0.t, atol=1e-6)
+    assert worse_plain >= 30, worse_plain
+
+
+def test_ransac_threshold_follows_the_object_size():
+    fixed = PNP_SOLVERS.build("epnp_ransac")
+    rel = PNP_SOLVERS.build("epnp_ransac", relative_error=0.1)
+    small = np.array([[0.0, 0.0], [30.0, 40.0]])     # diagonal 50 px -> the 8 px floor
+    large = np.array([[0.0, 0.0], [300.0, 400.0]])   # diagonal 500 px -> 50 px
+    assert fixed.threshold(large) == 8.0
+    assert rel.threshold(small) == 8.0 and rel.threshold(large) == pytest.approx(50.0)
+    # 6 px noise on a large object: a fixed 8 px threshold drops true inliers, the relative one keeps them
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-100, 100, (50, 3))
+    R, t = random_rotation(rng), np.array([0.0, 0.0, 350.0])
+    uv = project_points(X, LINEMOD_K, R, t) + rng.normal(0, 6.0, (50, 2))
+    assert fixed(X, uv, LINEMOD_K).inliers.sum() < 50 <= rel(X, uv, LINEMOD_K).inliers.sum()
 
 
 @pytest.mark.parametrize("name", SOLVERS)
@@ -291,7 +340,7 @@ def test_coplanar_points():
         uv = project_points(X, LINEMOD_K, R, t)
         for name in SOLVERS:
             est = PNP_SOLVERS.build(name)(X, uv, LINEMOD_K)
-            if name in ("dlt", "epnp", "epnp_ransac", "weighted_lm"):  # weighted_lm: its EPnP start refuses
+            if name in ("dlt", "epnp", "epnp_ransac", "sqpnp_ransac", "weighted_lm"):  # their EPnP starts refuse
                 assert not est.ok and "coplanar" in est.reason, (name, est.reason)
             else:
                 assert est.ok, (name, est.reason)
@@ -340,6 +389,8 @@ def test_ransac_and_weighted_lm_parameters_are_validated():
         PNP_SOLVERS.build("epnp_ransac", reprojection_error=0)
     with pytest.raises(ValueError, match="min_inliers"):
         PNP_SOLVERS.build("epnp_ransac", min_inliers=3)
+    with pytest.raises(ValueError, match="relative_error"):
+        PNP_SOLVERS.build("sqpnp_ransac", relative_error=1.5)
     with pytest.raises(ValueError, match="cannot initialise itself"):
         PNP_SOLVERS.build("weighted_lm", init="weighted_lm")
     with pytest.raises(KeyError, match="known PnP solvers: dlt, epnp"):

@@ -24,7 +24,7 @@ from kpd6d.evaluation import add_error, add_s_accuracy
 from kpd6d.geometry import LINEMOD_K, project_points, random_rotation
 from kpd6d.registry import PNP_SOLVERS
 
-DEFAULT_SOLVERS = ("epnp", "iterative", "sqpnp", "epnp_ransac", "dlt", "weighted_lm")
+DEFAULT_SOLVERS = ("epnp", "iterative", "sqpnp", "epnp_ransac", "sqpnp_ransac", "dlt", "weighted_lm")
 
 
 def make_problems(num_keypoints: int, batch: int, noise: float, outliers: float, seed: int):

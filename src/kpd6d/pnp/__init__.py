@@ -1,4 +1,4 @@
-"""PnP solvers (registry ``PNP_SOLVERS``): ``epnp``, ``iterative``, ``sqpnp``, ``epnp_ransac``, ``dlt``, ``weighted_lm``.
+"""PnP solvers (registry ``PNP_SOLVERS``): ``epnp``, ``iterative``, ``sqpnp``, ``epnp_ransac``, ``sqpnp_ransac``, ``dlt``, ``weighted_lm``.
 
 ``PNP_SOLVERS.build(name, **params)(points_3d (N,3) mm, points_2d (N,2) px, K (3,3),
 confidences=None) -> PoseEstimate``; ``solver.solve_batch(...)`` for (B, N, ...) inputs. See

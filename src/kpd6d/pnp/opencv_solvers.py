@@ -1,4 +1,4 @@
-"""OpenCV PnP solvers: ``epnp``, ``iterative``, ``sqpnp`` and ``epnp_ransac``.
+"""OpenCV PnP solvers: ``epnp``, ``iterative``, ``sqpnp``, ``epnp_ransac`` and ``sqpnp_ransac``.
 
 Each uses only the points with confidence > 0 (confidences are not weights here). Minimum point
 counts are what gives reliable answers, not only what OpenCV accepts: OpenCV's EPnP accepts 4
@@ -21,7 +21,7 @@ from kpd6d.pnp.base import PnPSolver, Problems
 from kpd6d.pnp.checks import MAX_RELATIVE_RESIDUAL
 from kpd6d.registry import PNP_SOLVERS
 
-__all__ = ["EPnP", "EPnPRansac", "Iterative", "OpenCVSolver", "SQPnP"]
+__all__ = ["EPnP", "EPnPRansac", "Iterative", "OpenCVSolver", "SQPnP", "SQPnPRansac"]
 
 
 def _cv_error(exc: cv2.error) -> str:
@@ -98,6 +98,10 @@ class EPnPRansac(OpenCVSolver):
     ``cv2.solvePnPRefineLM`` over the inliers. ``seed`` (int, or None to leave OpenCV's global RNG
     alone) reseeds OpenCV's RNG before each problem so results are reproducible. ``min_inliers``
     (default 5, at least 5) is the smallest consensus set accepted; ``inliers`` marks it.
+    ``relative_error`` (None = off) scales the inlier threshold with the object's image size: the
+    threshold is ``max(reprojection_error, relative_error x d)`` where d is the diagonal of the 2D
+    box of the points (the size the validity gate uses), so one setting suits a 40 px and a 300 px
+    object.
     """
 
     name = "epnp_ransac"
@@ -108,7 +112,8 @@ class EPnPRansac(OpenCVSolver):
     def __init__(self, reprojection_error: float = 8.0, iterations: int = 100, confidence: float = 0.99,
                  refine: bool = True, seed: int | None = 0, min_inliers: int = 5,
                  max_reprojection_error: float | None = None,
-                 max_relative_residual: float | None = MAX_RELATIVE_RESIDUAL) -> None:
+                 max_relative_residual: float | None = MAX_RELATIVE_RESIDUAL,
+                 relative_error: float | None = None) -> None:
         super().__init__(max_reprojection_error, max_relative_residual)
         if not reprojection_error > 0:
             raise ValueError(f"epnp_ransac: reprojection_error must be > 0 px, got {reprojection_error!r}")
@@ -118,6 +123,9 @@ class EPnPRansac(OpenCVSolver):
             raise ValueError(f"epnp_ransac: confidence must be in (0, 1), got {confidence!r}")
         if int(min_inliers) < 5:
             raise ValueError(f"epnp_ransac: min_inliers must be >= 5 (EPnP's minimum), got {min_inliers!r}")
+        if relative_error is not None and not (isinstance(relative_error, (int, float)) and 0 < relative_error < 1):
+            raise ValueError(f"{self.name}: relative_error must be in (0, 1) or None, got {relative_error!r}")
+        self.relative_error = None if relative_error is None else float(relative_error)
         self.reprojection_error = float(reprojection_error)
         self.iterations = int(iterations)
         self.confidence = float(confidence)
@@ -126,11 +134,17 @@ class EPnPRansac(OpenCVSolver):
         self.min_inliers = int(min_inliers)
         self.min_points = self.min_inliers
 
+    def threshold(self, uv: np.ndarray) -> float:
+        """The inlier threshold (px) for image points ``uv`` (N, 2)."""
+        if self.relative_error is None:
+            return self.reprojection_error
+        return max(self.reprojection_error, self.relative_error * float(np.linalg.norm(uv.max(0) - uv.min(0))))
+
     def _solve_one(self, X, uv, K):
         if self.seed is not None:
             cv2.setRNGSeed(int(self.seed))
         ok, rvec, tvec, inl = cv2.solvePnPRansac(
-            X, uv, K, None, iterationsCount=self.iterations, reprojectionError=self.reprojection_error,
+            X, uv, K, None, iterationsCount=self.iterations, reprojectionError=self.threshold(uv),
             confidence=self.confidence, flags=self.flag,
         )
         if not ok or inl is None:
@@ -138,6 +152,58 @@ class EPnPRansac(OpenCVSolver):
         inl = np.sort(inl.reshape(-1))
         if len(inl) < self.min_inliers:
             return np.nan, np.nan, None, f"RANSAC found only {len(inl)} inliers; min_inliers={self.min_inliers}"
+        return self._refit(X, uv, K, rvec, tvec, inl)
+
+    def _refit(self, X, uv, K, rvec, tvec, inl):
+        """(R, t, inliers, reason) from the consensus pose (rvec, tvec) and its inlier indices ``inl``."""
         if self.refine:
             rvec, tvec = cv2.solvePnPRefineLM(X[inl], uv[inl], K, None, rvec, tvec)
         return cv2.Rodrigues(rvec)[0], tvec.reshape(3), inl, ""
+
+
+@PNP_SOLVERS.register("sqpnp_ransac")
+class SQPnPRansac(EPnPRansac):
+    """RANSAC consensus as ``epnp_ransac`` (EPnP hypotheses on 5-point samples), then SQPnP (globally
+    optimal) on all the inliers, the inliers re-chosen with that pose and refitted until they no longer
+    change (at most :attr:`max_refits` times), then (``refine``) LM on them.
+
+    The robust form of ``sqpnp`` on many keypoints: where most keypoints are good, SQPnP on all of
+    them averages their noise out; a few gross outliers (a keypoint on the wrong part, an occluder)
+    pull that fit, and RANSAC removes them first. Because the inliers are refitted together, the
+    threshold can be generous: by default it grows with the object's image size
+    (``relative_error`` 0.1 of the 2D box diagonal, at least ``reprojection_error`` px).
+    """
+
+    name = "sqpnp_ransac"
+
+    def __init__(self, reprojection_error: float = 8.0, iterations: int = 100, confidence: float = 0.99,
+                 refine: bool = False, seed: int | None = 0, min_inliers: int = 5,
+                 max_reprojection_error: float | None = None,
+                 max_relative_residual: float | None = MAX_RELATIVE_RESIDUAL,
+                 relative_error: float | None = 0.1) -> None:
+        super().__init__(reprojection_error, iterations, confidence, refine, seed, min_inliers,
+                         max_reprojection_error, max_relative_residual, relative_error)
+
+    #: refits (SQPnP on the inliers, then the inliers re-chosen with that pose) at most this many times
+    max_refits = 3
+
+    def _refit(self, X, uv, K, rvec, tvec, inl):
+        # The consensus set was chosen with a 5-point hypothesis, whose own errors push some good points
+        # over the threshold: refit on the inliers, re-choose them with the refitted pose, until stable
+        # (the local optimisation of LO-RANSAC).
+        thr = self.threshold(uv)
+        for _ in range(self.max_refits):
+            ok, rvec_s, tvec_s = cv2.solvePnP(X[inl], uv[inl], K, None, flags=cv2.SOLVEPNP_SQPNP)
+            if not ok:
+                break
+            rvec, tvec = rvec_s, tvec_s
+            proj = cv2.projectPoints(X, rvec, tvec, K, None)[0].reshape(-1, 2)
+            new = np.flatnonzero(np.linalg.norm(proj - uv, axis=1) <= thr)
+            if len(new) < self.min_inliers or np.array_equal(new, inl):
+                break
+            inl = new
+        else:  # the last re-chosen set was not refitted yet
+            ok, rvec_s, tvec_s = cv2.solvePnP(X[inl], uv[inl], K, None, flags=cv2.SOLVEPNP_SQPNP)
+            if ok:
+                rvec, tvec = rvec_s, tvec_s
+        return super()._refit(X, uv, K, rvec, tvec, inl)

@@ -17,6 +17,7 @@ from __future__ import annotations
 import cv2
 import numpy as np
 
+from kpd6d.geometry import project_points
 from kpd6d.pnp.base import PnPSolver, Problems
 from kpd6d.pnp.checks import MAX_RELATIVE_RESIDUAL
 from kpd6d.registry import PNP_SOLVERS
@@ -192,18 +193,15 @@ class SQPnPRansac(EPnPRansac):
         # over the threshold: refit on the inliers, re-choose them with the refitted pose, until stable
         # (the local optimisation of LO-RANSAC).
         thr = self.threshold(uv)
-        for _ in range(self.max_refits):
+        for it in range(self.max_refits):
             ok, rvec_s, tvec_s = cv2.solvePnP(X[inl], uv[inl], K, None, flags=cv2.SOLVEPNP_SQPNP)
-            if not ok:
+            if not ok or it == self.max_refits - 1:  # the reported inliers are the ones last fitted
+                rvec, tvec = (rvec_s, tvec_s) if ok else (rvec, tvec)
                 break
             rvec, tvec = rvec_s, tvec_s
-            proj = cv2.projectPoints(X, rvec, tvec, K, None)[0].reshape(-1, 2)
-            new = np.flatnonzero(np.linalg.norm(proj - uv, axis=1) <= thr)
+            err = np.linalg.norm(project_points(X, K, cv2.Rodrigues(rvec)[0], tvec.reshape(3)) - uv, axis=1)
+            new = np.flatnonzero(err <= thr)
             if len(new) < self.min_inliers or np.array_equal(new, inl):
                 break
             inl = new
-        else:  # the last re-chosen set was not refitted yet
-            ok, rvec_s, tvec_s = cv2.solvePnP(X[inl], uv[inl], K, None, flags=cv2.SOLVEPNP_SQPNP)
-            if ok:
-                rvec, tvec = rvec_s, tvec_s
         return super()._refit(X, uv, K, rvec, tvec, inl)

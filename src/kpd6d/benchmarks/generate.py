@@ -9,6 +9,10 @@ Generates ``--num-images`` 640x480 images (one target object, one occluder by de
 * ``CPU``: CPU time per image over all processes and threads (start-up included), and the rate
   that many idle cores would reach (an upper bound; use it when other jobs load the machine);
 * a per-stage profile of one process (``--profile``): where the time of one image goes.
+
+``--experiment lmo --models-dir <BOP lmo>/models`` measures the scenes of a recipe instead: that
+experiment's ``data.options`` (table-top layout, objects per image, distractors, lighting) and
+``objects.obj_ids``, exactly as ``kpd6d-run experiment=lmo`` generates them.
 """
 
 from __future__ import annotations
@@ -40,11 +44,11 @@ def _profile(args) -> None:
     try:
         from kpd6d.synth import generate_dataset
 
-        opts = _options(args)
-        generate_dataset(root, args.models_dir, num_images=1, workers=1, progress=False, **opts)
+        opts, obj_ids = _options(args)
+        generate_dataset(root, args.models_dir, obj_ids=obj_ids, num_images=1, workers=1, progress=False, **opts)
         import kpd6d.synth.generate as gen
 
-        spec = {"root": str(root), "split_dir": str(root / "prof"), "obj_ids": None, "seed": 1,
+        spec = {"root": str(root), "split_dir": str(root / "prof"), "obj_ids": obj_ids, "seed": 1,
                 "config": SynthConfig.from_options(opts).to_dict()}
         gen._init_worker(spec)
         comp = gen._STATE["composer"]
@@ -98,10 +102,39 @@ def _profile(args) -> None:
         shutil.rmtree(root, ignore_errors=True)
 
 
-def _options(args) -> dict:
-    return dict(width=args.width, height=args.height, objects_per_image=(1, 1),
-                distractors=(args.occluders, args.occluders), rgb_format=args.rgb_format,
-                depth=args.depth, antialias=args.antialias, designator=None)
+def experiment_options(name: str, models_dir: str | None) -> tuple[dict, list[int] | None]:
+    """(generator options, object ids) of ``conf/experiment/<name>.yaml``: its ``data.options`` and
+    ``objects.obj_ids``, as ``kpd6d-run experiment=<name>`` composes them."""
+    from hydra import compose, initialize_config_dir
+
+    from kpd6d.config import config_dir
+    from kpd6d.io import to_plain
+
+    overrides = [f"experiment={name}"] + ([f"objects.models_dir={models_dir}"] if models_dir else [])
+    with initialize_config_dir(str(config_dir()), version_base="1.3"):
+        cfg = compose("run", overrides=overrides)
+    ids = to_plain(cfg.objects.obj_ids)
+    return dict(to_plain(cfg.data.options) or {}), (None if ids is None else [int(i) for i in ids])
+
+
+def _options(args) -> tuple[dict, list[int] | None]:
+    """Generator options and object ids of the benchmark: one object + occluders, or an experiment's."""
+    if args.experiment:
+        opts, obj_ids = experiment_options(args.experiment, args.models_dir)
+    else:
+        opts = dict(objects_per_image=(1, 1), distractors=(args.occluders, args.occluders))
+        obj_ids = None
+    opts.update(width=args.width, height=args.height, rgb_format=args.rgb_format, depth=args.depth,
+                antialias=args.antialias, designator=None)
+    return opts, obj_ids
+
+
+def _describe(args, opts: dict, obj_ids) -> str:
+    if args.experiment:
+        return (f"experiment={args.experiment} ({opts.get('layout', 'free')} layout, objects per image "
+                f"{opts.get('objects_per_image')}, distractors {opts.get('distractors')}, "
+                f"{len(obj_ids) if obj_ids else 'all'} object models)")
+    return f"1 object + {args.occluders} occluder(s)"
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -116,6 +149,8 @@ def main(argv: list[str] | None = None) -> int:
     ap.add_argument("--depth", action="store_true")
     ap.add_argument("--antialias", action="store_true", help="4x multisampled colour pass")
     ap.add_argument("--models-dir", default=None, help="BOP models folder (default: procedural objects)")
+    ap.add_argument("--experiment", default=None,
+                    help="measure this conf/experiment's scenes (its data.options and obj_ids), e.g. lmo")
     ap.add_argument("--out", default=None, help="keep the dataset here (default: a temporary folder, deleted)")
     ap.add_argument("--profile", type=int, default=0, metavar="N", help="also profile N images in one process")
     args = ap.parse_args(argv)
@@ -135,13 +170,14 @@ def main(argv: list[str] | None = None) -> int:
             a, b = resource.getrusage(resource.RUSAGE_SELF), resource.getrusage(resource.RUSAGE_CHILDREN)
             return a.ru_utime + a.ru_stime + b.ru_utime + b.ru_stime
 
+        opts, obj_ids = _options(args)
         c0, t0 = cpu(), time.perf_counter()
-        generate_dataset(root, args.models_dir, num_images=args.num_images, workers=workers, progress=False,
-                         **_options(args))
+        generate_dataset(root, args.models_dir, obj_ids=obj_ids, num_images=args.num_images, workers=workers,
+                         progress=False, **opts)
         wall, cpu_s = time.perf_counter() - t0, cpu() - c0
         steady, n = _steady_rate(root, "train")
-        print(f"kpd6d-benchmark generate: {args.num_images} images {args.width}x{args.height}, 1 object + "
-              f"{args.occluders} occluder(s), rgb {args.rgb_format}{', depth' if args.depth else ''}"
+        print(f"kpd6d-benchmark generate: {args.num_images} images {args.width}x{args.height}, "
+              f"{_describe(args, opts, obj_ids)}, rgb {args.rgb_format}{', depth' if args.depth else ''}"
               f"{', antialias' if args.antialias else ''}, "
               f"{workers} worker(s), {os.cpu_count()} cores")
         print(f"  total : {args.num_images / wall:6.1f} images/s  ({wall:.1f} s incl. start-up and models)")

@@ -576,3 +576,45 @@ def test_two_pass_and_full_segmentation_paths_agree(tmp_path, models_dir):
     assert any(i.visib_fract < 0.95 for f in info for i in f.instances)  # occluders did occlude
     for f_fast, f_aa in zip(info, BopDataset(tmp_path / "aa", "train")):
         np.testing.assert_allclose(f_fast.load_depth(), f_aa.load_depth(), atol=0.1)  # stored in 0.1 mm
+
+
+def test_object_alone_passes_are_shared_by_objects_with_disjoint_boxes():
+    """silhouette_counts_many gives each instance the counts of a pass drawing it alone (and those of an
+    independent rasterization, off-image parts included), in fewer passes: instances whose boxes are
+    disjoint share one."""
+    import trimesh
+
+    from kpd6d.render import Renderer
+    from kpd6d.synth.scene import bbox_obj_from_uv, silhouette_counts, silhouette_counts_many
+
+    W, H = 160, 120
+    K = default_K(W, H)
+    r = Renderer(W, H, K, antialias=False)
+    box, ball = trimesh.creation.box((60.0, 40.0, 50.0)), trimesh.creation.icosphere(subdivisions=2, radius=30.0)
+    R = trimesh.transformations.rotation_matrix(0.4, [1.0, 1.0, 0.0])[:3, :3]
+    items = [(box, R, np.array([-20.0, 0.0, 600.0])), (ball, np.eye(3), np.array([5.0, 10.0, 580.0])),  # overlap
+             (ball, np.eye(3), np.array([-150.0, -100.0, 700.0])),  # apart, top left
+             (box, R, np.array([340.0, 40.0, 650.0]))]  # leaves the image on the right
+    boxes = [bbox_obj_from_uv(project_points(m.vertices, K, Ri, ti)) for m, Ri, ti in items]
+    assert boxes[3][0] + boxes[3][2] > W  # the last one is partly outside the image
+    calls = []
+    render = r.render
+    r.render = lambda *a, **k: calls.append(1) or render(*a, **k)
+    many = silhouette_counts_many(r, items, K, W, H, boxes)
+    n_many = len(calls)
+    calls.clear()
+    single = [silhouette_counts(r, m, Ri, ti, K, W, H, b) for (m, Ri, ti), b in zip(items, boxes)]
+    n_single = len(calls)
+    r.close()
+    assert many == single
+    assert n_many == 3 and n_single == 5  # {0, 2, 3} + {1} + the off-image tile of 3, against 1 + 1 + 1 + 2
+    pad = 120
+    for (m, Ri, ti), (total, inside) in zip(items, many):
+
+        class _M:  # what _rasterize reads
+            vertices, faces = np.asarray(m.vertices), np.asarray(m.faces)
+
+        sil = _rasterize(_M, K, Ri, ti, W, H, pad=pad)
+        ref_inside = int(sil[pad:pad + H, pad:pad + W].sum())
+        assert abs(total - int(sil.sum())) <= 0.01 * total + 2 and abs(inside - ref_inside) <= 0.01 * inside + 2
+        assert inside > 0

@@ -5,7 +5,8 @@ Passes (``antialias: false``, the default): a colour pass of everything, whose d
 is the pixel-centre depth of the whole scene, and a segmentation pass of the objects alone; an
 object's visible mask is its objects-alone mask minus the pixels where the full scene is nearer
 (an occluder in front), and its objects-alone mask is its silhouette as far as occluders go. An
-object-alone pass is only added when other objects may cover it or it leaves the image. With
+object-alone pass is only added when other objects may cover it or it leaves the image, and objects
+whose boxes are disjoint share one such pass (:func:`silhouette_counts_many`). With
 ``antialias: true`` the colour pass is multisampled (its depth is not pixel-centre exact), so a
 segmentation pass of the whole scene gives the masks instead.
 
@@ -45,7 +46,7 @@ from kpd6d.synth.tabletop import (
     table_camera,
 )
 
-__all__ = ["SceneComposer", "SceneInstance", "SceneSample", "silhouette_counts"]
+__all__ = ["SceneComposer", "SceneInstance", "SceneSample", "silhouette_counts", "silhouette_counts_many"]
 
 _GAP = 1.0  # mm: least clearance between footprints on the table (and of floating occluders above it)
 
@@ -129,6 +130,59 @@ def silhouette_counts(renderer, model, R, t, K, width, height, bbox_obj) -> tupl
             if i == 0 and j == 0:
                 inside = n
     return total, inside
+
+
+def _grown_box(bbox_obj) -> tuple[int, int, int, int]:
+    """``bbox_obj`` (x, y, w, h) grown by 1 px (rasterization ties) as inclusive (x0, y0, x1, y1)."""
+    x, y, w, h = bbox_obj
+    return x - 1, y - 1, x + w + 1, y + h + 1
+
+
+def _disjoint(a, b) -> bool:
+    return a[2] < b[0] or b[2] < a[0] or a[3] < b[1] or b[3] < a[1]
+
+
+def silhouette_counts_many(renderer, items, K, width, height, boxes) -> list[tuple[int, int]]:
+    """:func:`silhouette_counts` of several instances ``items`` (``(model, R, t)``) with boxes ``boxes``.
+
+    A silhouette lies inside its instance's box (grown by 1 px), so instances whose grown boxes are
+    pairwise disjoint cannot cover one another: they share one segmentation pass of the image
+    (greedy grouping), and each instance's pixels in it are exactly those of a pass drawing it alone.
+    Parts outside the image (other tiles) are counted per instance, as in :func:`silhouette_counts`.
+    """
+    grown = [_grown_box(b) for b in boxes]
+    groups: list[list[int]] = []
+    for i, g in enumerate(grown):
+        for group in groups:
+            if all(_disjoint(g, grown[j]) for j in group):
+                group.append(i)
+                break
+        else:
+            groups.append([i])
+    inside = [0] * len(items)
+    for group in groups:
+        res = renderer.render([items[i] for i in group], K=K, depth_only=True)
+        for m, i in zip(res.masks_visib, group):
+            inside[i] = int(np.count_nonzero(m))
+    out = []
+    for i, (model, R, t) in enumerate(items):
+        x, y, w, h = boxes[i]
+        if x >= 1 and y >= 1 and x + w <= width - 2 and y + h <= height - 2:  # wholly inside: one tile
+            out.append((inside[i], inside[i]))
+            continue
+        kx = range(math.floor((x - 1) / width), math.floor((x + w + 1) / width) + 1)
+        ky = range(math.floor((y - 1) / height), math.floor((y + h + 1) / height) + 1)
+        total = inside[i]
+        for a in kx:
+            for b in ky:
+                if a == 0 and b == 0:
+                    continue
+                Kt = np.array(K, dtype=np.float64)
+                Kt[0, 2] -= a * width
+                Kt[1, 2] -= b * height
+                total += int(np.count_nonzero(renderer.render([(model, R, t)], K=Kt, depth_only=True).depth > 0))
+        out.append((total, inside[i]))
+    return out
 
 
 class SceneComposer:
@@ -412,12 +466,9 @@ class SceneComposer:
     def _instances(self, chosen, poses, masks, base, coverers) -> list[SceneInstance]:
         """Ground truth of the objects ``chosen`` at ``poses``: ``masks`` are their visible masks,
         ``base`` their masks as far as occluders go, ``coverers[i]`` the masks that may cover object i."""
-        instances = []
+        boxes, counts, alone = [], [], []
         for i, k in enumerate(chosen):
-            model = self.models[k]
             R, t = poses[i]
-            mask = masks[i]
-            visib = int(np.count_nonzero(mask))
             uv = project_points(self.geoms[k].hull, self.K, R, t)  # same extremes as all vertices
             bbox_obj = bbox_obj_from_uv(uv)
             x, y, w, h = bbox_obj
@@ -433,10 +484,26 @@ class SceneComposer:
                 # (grown by 1 px against rasterization ties); only pixels there can be covered
                 hull = _hull_mask(uv, x0, y0, x1, y1)
                 occluded = any(np.any(m[y0:y1, x0:x1] & hull) for m in others)
+            boxes.append(bbox_obj)
             if inside_image and not occluded:
-                px_all = px_valid = int(np.count_nonzero(base[i]))
-            else:
-                px_all, px_valid = silhouette_counts(self.renderer, model, R, t, self.K, self.W, self.H, bbox_obj)
+                n_px = int(np.count_nonzero(base[i]))
+                counts.append((n_px, n_px))
+            else:  # the whole silhouette needs a pass drawing the object alone
+                counts.append(None)
+                alone.append(i)
+        if alone:
+            many = silhouette_counts_many(self.renderer, [(self.models[chosen[i]], *poses[i]) for i in alone],
+                                          self.K, self.W, self.H, [boxes[i] for i in alone])
+            for i, c in zip(alone, many):
+                counts[i] = c
+        instances = []
+        for i, k in enumerate(chosen):
+            model = self.models[k]
+            R, t = poses[i]
+            mask = masks[i]
+            visib = int(np.count_nonzero(mask))
+            bbox_obj = boxes[i]
+            px_all, px_valid = counts[i]
             instances.append(SceneInstance(
                 obj_id=int(model.obj_id), R=R, t=t, mask_visib=mask,
                 bbox_obj=bbox_obj if visib > 0 else [-1, -1, -1, -1],

@@ -115,21 +115,13 @@ def silhouette_counts(renderer, model, R, t, K, width, height, bbox_obj) -> tupl
     shifted by multiples of the image size) that cover ``bbox_obj``; tiles do not overlap, so the
     count is exact.
     """
+    return silhouette_counts_many(renderer, [(model, R, t)], K, width, height, [bbox_obj])[0]
+
+
+def _inside_image(bbox_obj, width: int, height: int) -> bool:
+    """Whether the box (x, y, w, h), with 1 px of slack against rasterization ties, lies in the image."""
     x, y, w, h = bbox_obj
-    kx = range(math.floor((x - 1) / width), math.floor((x + w + 1) / width) + 1)
-    ky = range(math.floor((y - 1) / height), math.floor((y + h + 1) / height) + 1)
-    total, inside = 0, 0
-    for i in kx:
-        for j in ky:
-            Kt = np.array(K, dtype=np.float64)
-            Kt[0, 2] -= i * width
-            Kt[1, 2] -= j * height
-            depth = renderer.render([(model, R, t)], K=Kt, depth_only=True).depth
-            n = int(np.count_nonzero(depth > 0))
-            total += n
-            if i == 0 and j == 0:
-                inside = n
-    return total, inside
+    return x >= 1 and y >= 1 and x + w <= width - 2 and y + h <= height - 2
 
 
 def _grown_box(bbox_obj) -> tuple[int, int, int, int]:
@@ -166,10 +158,10 @@ def silhouette_counts_many(renderer, items, K, width, height, boxes) -> list[tup
             inside[i] = int(np.count_nonzero(m))
     out = []
     for i, (model, R, t) in enumerate(items):
-        x, y, w, h = boxes[i]
-        if x >= 1 and y >= 1 and x + w <= width - 2 and y + h <= height - 2:  # wholly inside: one tile
+        if _inside_image(boxes[i], width, height):  # wholly inside: one tile
             out.append((inside[i], inside[i]))
             continue
+        x, y, w, h = boxes[i]
         kx = range(math.floor((x - 1) / width), math.floor((x + w + 1) / width) + 1)
         ky = range(math.floor((y - 1) / height), math.floor((y + h + 1) / height) + 1)
         total = inside[i]
@@ -472,8 +464,6 @@ class SceneComposer:
             uv = project_points(self.geoms[k].hull, self.K, R, t)  # same extremes as all vertices
             bbox_obj = bbox_obj_from_uv(uv)
             x, y, w, h = bbox_obj
-            # (1 px of slack around the box against rasterization ties)
-            inside_image = x >= 1 and y >= 1 and x + w <= self.W - 2 and y + h <= self.H - 2
             # could something cover part of base[i]? only if it shows inside the object's box
             x0, y0 = max(x - 1, 0), max(y - 1, 0)
             x1, y1 = min(x + w + 1, self.W - 1) + 1, min(y + h + 1, self.H - 1) + 1
@@ -485,7 +475,7 @@ class SceneComposer:
                 hull = _hull_mask(uv, x0, y0, x1, y1)
                 occluded = any(np.any(m[y0:y1, x0:x1] & hull) for m in others)
             boxes.append(bbox_obj)
-            if inside_image and not occluded:
+            if not occluded and _inside_image(bbox_obj, self.W, self.H):
                 n_px = int(np.count_nonzero(base[i]))
                 counts.append((n_px, n_px))
             else:  # the whole silhouette needs a pass drawing the object alone

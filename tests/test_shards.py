@@ -382,3 +382,27 @@ def test_evaluation_merge_names_unfinished_shards_missing_and_duplicated_frames(
                  progress=False, run_info={"pnp": "sqpnp"}, num_shards=2, shard=1)
     with pytest.raises(ValueError, match="merge=true needs num_shards"):
         evaluate(_pipeline(BoxKeyedKPD(root, poses, K)), BopDataset(root), out, merge=True, progress=False)
+
+
+def test_refreshed_distractor_pools_are_the_same_whichever_process_makes_an_image(tmp_path, models_dir, reference):
+    """``distractor_refresh``: image k uses pool k // n, so three shards (each meeting the blocks in its
+    own order) merge into the single run byte for byte; the first block is the unrefreshed run's pool."""
+    kw = dict(distractor_refresh=2, palette="natural")
+    one = tmp_path / "one"
+    generate_dataset(one, models_dir, **{**_RUN, **kw})
+    single = tree_bytes(one)
+    _shards(tmp_path / "sharded", models_dir, **kw)
+    merge_shards(tmp_path / "sharded", "train", N)
+    got = _dataset_files(tmp_path / "sharded")
+    assert set(got) == set(single)
+    for name in single:
+        assert got[name] == single[name], name
+    # against the natural palette without refresh: images 0-1 (block 0) equal, later ones differ
+    plain = tmp_path / "plain"
+    generate_dataset(plain, models_dir, **{**_RUN, "palette": "natural"})
+    plain_files = tree_bytes(plain)
+    rgb = sorted(n for n in single if "/rgb/" in n)
+    assert len(rgb) == 7
+    assert [single[n] == plain_files[n] for n in rgb[:2]] == [True, True]
+    assert sum(single[n] != plain_files[n] for n in rgb[2:]) >= 3
+    assert sum(single[n] != reference[n] for n in rgb) >= 5  # natural vs uniform palette

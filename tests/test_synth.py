@@ -618,3 +618,48 @@ def test_object_alone_passes_are_shared_by_objects_with_disjoint_boxes():
         ref_inside = int(sil[pad:pad + H, pad:pad + W].sum())
         assert abs(total - int(sil.sum())) <= 0.01 * total + 2 and abs(inside - ref_inside) <= 0.01 * inside + 2
         assert inside > 0
+
+
+def test_palettes():
+    """The natural palette: colours in [0, 255], mostly far less saturated than uniform RGB; its HSV
+    conversion agrees with colorsys; unknown palettes name the known ones."""
+    import colorsys
+
+    from kpd6d.synth.palette import _hsv_to_rgb, random_colors
+
+    rng = np.random.default_rng(0)
+    h, s, v = rng.random(50), rng.random(50), rng.random(50)
+    ours = _hsv_to_rgb(h, s, v)
+    ref = np.array([colorsys.hsv_to_rgb(*x) for x in zip(h, s, v, strict=True)])
+    np.testing.assert_allclose(ours, ref, atol=1e-12)
+
+    def sat(c):
+        return (c.max(1) - c.min(1)) / np.maximum(c.max(1), 1e-9)
+
+    nat, uni = random_colors(np.random.default_rng(1), 4000, "natural"), random_colors(np.random.default_rng(1), 4000)
+    assert nat.min() >= 0 and nat.max() <= 255 and uni.min() >= 0 and uni.max() <= 255
+    assert np.median(sat(nat)) < 0.3 < np.median(sat(uni))
+    assert 0.05 < (sat(nat) > 0.6).mean() < 0.2  # a tail of vivid colours remains
+    with pytest.raises(ValueError, match=r"palette must be one of \['uniform', 'natural'\], got 'pastel'"):
+        random_colors(rng, 2, "pastel")
+    from kpd6d.synth.config import SynthConfig
+
+    with pytest.raises(ValueError, match="palette must be one of"):
+        SynthConfig.from_options({"palette": "pastel"})
+    with pytest.raises(ValueError, match="distractor_refresh must be >= 0"):
+        SynthConfig.from_options({"distractor_refresh": -1})
+    # options at their defaults stay out of dataset_info.json (old datasets resume unchanged)
+    assert "palette" not in SynthConfig().to_dict() and "distractor_refresh" not in SynthConfig().to_dict()
+    assert SynthConfig.from_options({"palette": "natural"}).to_dict()["palette"] == "natural"
+
+
+def test_natural_palette_backgrounds_are_muted():
+    from kpd6d.synth.backgrounds import ProceduralBackgrounds
+
+    def mean_sat(src):
+        imgs = [src.sample(np.random.default_rng(i), 64, 48).astype(np.float64) for i in range(20)]
+        return np.mean([np.median((im.max(2) - im.min(2)) / np.maximum(im.max(2), 1)) for im in imgs])
+
+    assert mean_sat(ProceduralBackgrounds("natural")) < 0.7 * mean_sat(ProceduralBackgrounds())
+    with pytest.raises(ValueError, match="palette must be one of"):
+        ProceduralBackgrounds("vivid")

@@ -12,6 +12,8 @@ from pathlib import Path
 
 import numpy as np
 
+from kpd6d.synth.palette import check_palette, random_color
+
 __all__ = ["BackgroundSource", "FolderBackgrounds", "ProceduralBackgrounds", "make_background_source",
            "procedural_background"]
 
@@ -26,12 +28,19 @@ class BackgroundSource:
         raise NotImplementedError
 
 
-def _random_color(rng: np.random.Generator) -> tuple[int, int, int]:
-    return tuple(int(c) for c in rng.integers(0, 256, 3))
+def _random_color(rng: np.random.Generator, palette: str = "uniform") -> tuple[int, int, int]:
+    if palette == "uniform":
+        return tuple(int(c) for c in rng.integers(0, 256, 3))
+    return tuple(int(round(c)) for c in random_color(rng, palette))
 
 
-def _gradient(rng, w, h):
-    c0, c1 = rng.uniform(0, 255, 3).astype(np.float32), rng.uniform(0, 255, 3).astype(np.float32)
+def _colors(rng: np.random.Generator, palette: str) -> tuple[np.ndarray, np.ndarray]:
+    """Two colours (float32 RGB in [0, 255]) for a gradient, noise or texture base."""
+    return random_color(rng, palette).astype(np.float32), random_color(rng, palette).astype(np.float32)
+
+
+def _gradient(rng, w, h, palette="uniform"):
+    c0, c1 = _colors(rng, palette)
     xs = np.linspace(-1, 1, w, dtype=np.float32)[None, :]
     ys = np.linspace(-1, 1, h, dtype=np.float32)[:, None]
     if rng.random() < 0.5:  # linear
@@ -44,7 +53,7 @@ def _gradient(rng, w, h):
     return c0 + s[..., None] * (c1 - c0)
 
 
-def _noise(rng, w, h):
+def _noise(rng, w, h, palette="uniform"):
     import cv2
 
     out = np.zeros((h, w, 3), np.float32)
@@ -57,11 +66,11 @@ def _noise(rng, w, h):
         total += amp
         amp *= rng.uniform(0.35, 0.65)
     out *= np.float32(1.0 / total)
-    lo, hi = rng.uniform(0, 255, 3).astype(np.float32), rng.uniform(0, 255, 3).astype(np.float32)
+    lo, hi = _colors(rng, palette)
     return lo + out * (hi - lo)
 
 
-def _texture(rng, w, h):
+def _texture(rng, w, h, palette="uniform"):
     """Stripes (sine or square) or a checkerboard at a random angle; ``w, h`` is the working size
     (half the output), periods are given in it."""
     import cv2
@@ -77,16 +86,16 @@ def _texture(rng, w, h):
         v = np.float32(-np.sin(a)) * xs + np.float32(np.cos(a)) * ys
         s = (u // period + v // period) % 2
     s = cv2.GaussianBlur(s.astype(np.float32), (0, 0), rng.uniform(0.3, 1.0))
-    c0, c1 = rng.uniform(0, 255, 3).astype(np.float32), rng.uniform(0, 255, 3).astype(np.float32)
+    c0, c1 = _colors(rng, palette)
     return c0 + s[..., None] * (c1 - c0)
 
 
-def _shapes(rng, img, count, max_size):
+def _shapes(rng, img, count, max_size, palette="uniform"):
     import cv2
 
     h, w = img.shape[:2]
     for _ in range(count):
-        color = _random_color(rng)
+        color = _random_color(rng, palette)
         kind = rng.integers(0, 5)
         cx, cy = int(rng.integers(0, w)), int(rng.integers(0, h))
         s = int(rng.integers(2, max(3, max_size)))
@@ -105,23 +114,24 @@ def _shapes(rng, img, count, max_size):
             cv2.line(img, (cx, cy), p2, color, int(rng.integers(1, 8)))
 
 
-def procedural_background(rng: np.random.Generator, width: int, height: int) -> np.ndarray:
-    """One procedural RGB uint8 background (height, width, 3)."""
+def procedural_background(rng: np.random.Generator, width: int, height: int, palette: str = "uniform") -> np.ndarray:
+    """One procedural RGB uint8 background (height, width, 3), its colours from ``palette``
+    (:mod:`kpd6d.synth.palette`)."""
     import cv2
 
     # the base is made at half resolution and upsampled (smooth patterns; 4x fewer pixels to compute)
     hw, hh = max(2, (width + 1) // 2), max(2, (height + 1) // 2)
     kind = rng.integers(0, 3)
-    base = (_gradient, _noise, _texture)[kind](rng, hw, hh)
+    base = (_gradient, _noise, _texture)[kind](rng, hw, hh, palette)
     if rng.random() < 0.5:  # blend two bases for more variety
-        other = (_gradient, _noise, _texture)[rng.integers(0, 3)](rng, hw, hh)
+        other = (_gradient, _noise, _texture)[rng.integers(0, 3)](rng, hw, hh, palette)
         a = np.float32(rng.uniform(0.2, 0.8))
         base = a * base + (1 - a) * other
     base = np.clip(base, 0, 255).astype(np.uint8)
     img = np.ascontiguousarray(cv2.resize(base, (width, height), interpolation=cv2.INTER_LINEAR))
     scale = max(width, height)
-    _shapes(rng, img, int(rng.integers(0, 12)), scale // 4)  # large shapes
-    _shapes(rng, img, int(rng.integers(0, 60)), max(4, scale // 25))  # clutter
+    _shapes(rng, img, int(rng.integers(0, 12)), scale // 4, palette)  # large shapes
+    _shapes(rng, img, int(rng.integers(0, 60)), max(4, scale // 25), palette)  # clutter
     if rng.random() < 0.5:
         img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.5, 2.0))
     sigma = rng.uniform(0, 8)
@@ -133,11 +143,14 @@ def procedural_background(rng: np.random.Generator, width: int, height: int) -> 
 
 
 class ProceduralBackgrounds(BackgroundSource):
+    def __init__(self, palette: str = "uniform") -> None:
+        self.palette = check_palette(palette)
+
     def sample(self, rng, width, height):
-        return procedural_background(rng, width, height)
+        return procedural_background(rng, width, height, self.palette)
 
     def __repr__(self) -> str:
-        return "ProceduralBackgrounds()"
+        return f"ProceduralBackgrounds(palette={self.palette!r})"
 
 
 class FolderBackgrounds(BackgroundSource):
@@ -199,6 +212,6 @@ class FolderBackgrounds(BackgroundSource):
         return f"FolderBackgrounds({str(self.folder)!r}, files={len(self.files)})"
 
 
-def make_background_source(backgrounds_dir: str | os.PathLike | None) -> BackgroundSource:
-    """A :class:`FolderBackgrounds` for a folder, else :class:`ProceduralBackgrounds`."""
-    return FolderBackgrounds(backgrounds_dir) if backgrounds_dir else ProceduralBackgrounds()
+def make_background_source(backgrounds_dir: str | os.PathLike | None, palette: str = "uniform") -> BackgroundSource:
+    """A :class:`FolderBackgrounds` for a folder, else :class:`ProceduralBackgrounds` in ``palette``."""
+    return FolderBackgrounds(backgrounds_dir) if backgrounds_dir else ProceduralBackgrounds(palette)

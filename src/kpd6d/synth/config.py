@@ -12,6 +12,7 @@ import numpy as np
 
 from kpd6d.config import to_int
 from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K
+from kpd6d.synth.palette import check_palette
 from kpd6d.synth.photometric import PhotometricConfig
 from kpd6d.synth.poses import ViewRanges
 
@@ -23,6 +24,9 @@ LAYOUTS = ("free", "tabletop")
 _TABLETOP_FIELDS = ("layout", "table_elevation_range", "table_roll_range", "table_size_range",
                     "table_cluster_radius", "table_distractor_rest_prob", "table_upright_prob",
                     "table_room_prob")
+#: options added after datasets were made without them: left out of ``to_dict`` while at their
+#: defaults, so that those datasets resume with the settings they were made with
+_LATER_FIELDS = ("palette", "distractor_refresh")
 
 
 def default_K(width: int, height: int) -> np.ndarray:
@@ -65,6 +69,7 @@ class SynthConfig:
     objects_per_image: Any = (1, 1)  # [min, max] or "all"
     distractors: tuple[int, int] = (0, 2)  # [min, max] random primitive occluders per image
     distractor_pool_size: int = 24
+    distractor_refresh: int = 0  # images per distractor pool: a new pool every n images (0: one pool per worker)
     distractor_size: tuple[float, float] = (0.3, 1.0)  # apparent size relative to the occluded object's box
     visib_fract_range: tuple[float, float] = (0.3, 1.0)  # every object's visible fraction must lie in it
     max_retries: int = 10  # scene re-samples to meet visib_fract_range (then the closest one is kept)
@@ -89,6 +94,7 @@ class SynthConfig:
     lighting: str = "random"  # "random" (Lighting.random per image), "indoor" (Lighting.random_indoor) or "fixed"
     specular_prob: float = 0.3
     backgrounds_dir: str | None = None  # folder of images; None: procedural backgrounds
+    palette: str = "uniform"  # colours of the procedural content: "uniform" RGB or "natural" (kpd6d.synth.palette)
     feather_sigma: float = 0.7  # px; softens the pasted objects' edges (0: hard paste)
     antialias: bool = False  # 4x multisampled colour pass (smoother edges, ~2.5x slower colour on llvmpipe)
     photometric: dict = field(default_factory=dict)  # PhotometricConfig fields; {"prob": 0} turns off
@@ -153,6 +159,10 @@ class SynthConfig:
         self._validate_layout()
         if self.lighting not in ("random", "indoor", "fixed"):
             raise ValueError(f"lighting must be 'random', 'indoor' or 'fixed', got {self.lighting!r}")
+        check_palette(self.palette)
+        self.distractor_refresh = to_int(self.distractor_refresh, "distractor_refresh")
+        if self.distractor_refresh < 0:
+            raise ValueError(f"distractor_refresh must be >= 0 (0: one pool), got {self.distractor_refresh!r}")
         if self.rgb_format not in ("png", "jpg"):
             raise ValueError(f"rgb_format must be 'png' or 'jpg', got {self.rgb_format!r}")
         if to_int(self.scene_size, "scene_size") < 1:
@@ -218,9 +228,9 @@ class SynthConfig:
             return list(v) if isinstance(v, tuple) else v
 
         d = {k: plain(v) for k, v in asdict(self).items()}
-        if self.layout == "free":  # as before the tabletop layout existed (dataset_info.json, resuming)
-            defaults = {f.name: f.default for f in fields(self)}
-            for name in _TABLETOP_FIELDS:
-                if d[name] == plain(defaults[name]):
-                    del d[name]
+        defaults = {f.name: f.default for f in fields(self)}
+        # as before these options existed (dataset_info.json, resuming)
+        for name in (*(_TABLETOP_FIELDS if self.layout == "free" else ()), *_LATER_FIELDS):
+            if d[name] == plain(defaults[name]):
+                del d[name]
         return d

@@ -8,6 +8,8 @@ from __future__ import annotations
 
 import numpy as np
 
+from kpd6d.synth.palette import random_color
+
 __all__ = ["distractor_pool", "make_distractor"]
 
 _SHAPES = ("box", "sphere", "cylinder", "cone", "capsule", "blob", "torus")
@@ -38,9 +40,10 @@ def _base_mesh(rng: np.random.Generator, kind: str):
     return m
 
 
-def make_distractor(rng: np.random.Generator, diameter: float):
+def make_distractor(rng: np.random.Generator, diameter: float, palette: str = "uniform"):
     """A random primitive (box, sphere, cylinder, cone, capsule, torus, convex blob) of about
-    ``diameter`` mm with a random vertex-colour texture (plain, stripes, checker, or noise)."""
+    ``diameter`` mm with a random vertex-colour texture (plain, stripes, checker, or noise) in
+    ``palette`` (:mod:`kpd6d.synth.palette`)."""
     import trimesh
 
     kind = _SHAPES[int(rng.integers(len(_SHAPES)))]
@@ -51,7 +54,7 @@ def make_distractor(rng: np.random.Generator, diameter: float):
     ext = float(np.linalg.norm(np.ptp(np.asarray(m.vertices), axis=0)))
     m.apply_scale(diameter / max(ext, 1e-9))
     v = np.asarray(m.vertices) / diameter
-    c0, c1 = rng.uniform(0, 255, 3), rng.uniform(0, 255, 3)
+    c0, c1 = random_color(rng, palette), random_color(rng, palette)
     pattern = int(rng.integers(4))
     d = rng.normal(size=3)
     d /= np.linalg.norm(d)
@@ -70,7 +73,9 @@ def make_distractor(rng: np.random.Generator, diameter: float):
     return m
 
 
-def distractor_pool(seed: int, size: int = 24, diameter_range: tuple[float, float] = (40.0, 200.0)) -> list:
-    """``size`` distractor meshes, deterministic for ``seed``."""
-    rng = np.random.default_rng([int(seed), 0xD15])
-    return [make_distractor(rng, float(rng.uniform(*diameter_range))) for _ in range(int(size))]
+def distractor_pool(seed: int, size: int = 24, diameter_range: tuple[float, float] = (40.0, 200.0),
+                    palette: str = "uniform", block: int = 0) -> list:
+    """``size`` distractor meshes, deterministic for ``(seed, block)``: ``block`` numbers the pools of
+    a run that refreshes its distractors (``distractor_refresh``); block 0 is the run's first pool."""
+    rng = np.random.default_rng([int(seed), 0xD15] + ([int(block)] if block else []))
+    return [make_distractor(rng, float(rng.uniform(*diameter_range)), palette) for _ in range(int(size))]

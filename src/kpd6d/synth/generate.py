@@ -155,7 +155,6 @@ def _init_worker(spec: dict) -> None:
     from kpd6d.objects import load_bop_models
     from kpd6d.render import Renderer
     from kpd6d.synth.backgrounds import make_background_source
-    from kpd6d.synth.distractors import distractor_pool
     from kpd6d.synth.scene import SceneComposer
 
     cfg = SynthConfig.from_options(spec["config"])
@@ -166,12 +165,22 @@ def _init_worker(spec: dict) -> None:
 
         handlers = [handler_for_model(m) for m in models]
     renderer = Renderer(cfg.width, cfg.height, cfg.camera_K(), antialias=cfg.antialias)
-    pool = distractor_pool(spec["seed"], cfg.distractor_pool_size) if cfg.distractors[1] > 0 else []
+    pool = _distractors(spec["seed"], cfg, 0)
+    backgrounds = make_background_source(cfg.backgrounds_dir, cfg.palette)
     _STATE.clear()
     _STATE.update(
-        spec=spec, cfg=cfg, renderer=renderer,
-        composer=SceneComposer(renderer, models, cfg, make_background_source(cfg.backgrounds_dir), pool, handlers),
+        spec=spec, cfg=cfg, renderer=renderer, pool_block=0,
+        composer=SceneComposer(renderer, models, cfg, backgrounds, pool, handlers),
     )
+
+
+def _distractors(seed: int, cfg: SynthConfig, block: int) -> list:
+    """Distractor pool number ``block`` of a run (block 0 only, unless ``distractor_refresh``)."""
+    from kpd6d.synth.distractors import distractor_pool
+
+    if cfg.distractors[1] <= 0:
+        return []
+    return distractor_pool(seed, cfg.distractor_pool_size, palette=cfg.palette, block=block)
 
 
 def _make_images(indices: list[int]) -> list[dict]:
@@ -233,6 +242,11 @@ def _standard_default_start_method(method: str):
 def _make_image(index: int) -> dict:
     """Compose image ``index``, write its files, return its annotations."""
     spec, cfg, composer = _STATE["spec"], _STATE["cfg"], _STATE["composer"]
+    if cfg.distractor_refresh > 0:  # image ``index`` uses pool ``index // refresh``, whichever worker makes it
+        block = index // cfg.distractor_refresh
+        if block != _STATE["pool_block"]:
+            composer.set_distractors(_distractors(spec["seed"], cfg, block))
+            _STATE["pool_block"] = block
     scene_id, im_id = divmod(index, cfg.scene_size)
     sd = Path(spec["split_dir"]) / f"{scene_id:06d}"
     sample = composer.compose(image_rng(spec["seed"], index))

@@ -189,13 +189,22 @@ class SceneComposer:
         self.K = cfg.camera_K()
         self.W, self.H = cfg.width, cfg.height
         self.backgrounds = backgrounds
-        self.distractors = distractors
         self.geoms = [ModelGeometry(m) for m in self.models]
-        self.d_geoms = [ModelGeometry(d) for d in distractors]
+        self._resting: dict[tuple[str, int], RestingPoses] = {}  # (kind, index) -> resting poses, made once
+        self.distractors: list = []
+        self.set_distractors(distractors)
         self.ranges = cfg.view_ranges()
         self.photometric: PhotometricConfig = cfg.photometric_config()
         self.symmetry = symmetry_handlers or [None] * len(self.models)
-        self._resting: dict[tuple[str, int], RestingPoses] = {}  # (kind, index) -> resting poses, made once
+
+    def set_distractors(self, distractors: list) -> None:
+        """Use the occluder meshes ``distractors`` from now on (a refreshed pool): the previous ones'
+        geometry, resting poses and cached GL meshes are dropped."""
+        for mesh in self.distractors:
+            self._forget_mesh(mesh)
+        self._resting = {k: v for k, v in self._resting.items() if k[0] != "distractor"}
+        self.distractors = list(distractors)
+        self.d_geoms = [ModelGeometry(d) for d in self.distractors]
 
     # -- sampling ----------------------------------------------------------------------------------
     def _choose_objects(self, rng) -> list[int]:

@@ -31,7 +31,7 @@ class BackgroundSource:
 def _random_color(rng: np.random.Generator, palette: str = "uniform") -> tuple[int, int, int]:
     if palette == "uniform":
         return tuple(int(c) for c in rng.integers(0, 256, 3))
-    return tuple(int(round(c)) for c in random_color(rng, palette))
+    return tuple(int(c) for c in np.rint(random_color(rng, palette)))
 
 
 def _colors(rng: np.random.Generator, palette: str) -> tuple[np.ndarray, np.ndarray]:

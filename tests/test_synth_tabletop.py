@@ -490,3 +490,58 @@ def test_indoor_lighting_is_dimmer_on_average_and_tinted():
     ratios = [li.ambient[0] / li.ambient[2] for li in indoor]
     assert min(ratios) < 0.95 and max(ratios) > 1.05
     assert all(x.direction[1] > 0 for li in indoor for x in li.lights)  # from above (OpenCV y down)
+
+
+def test_shadow_pose_flattens_along_the_light_onto_the_table():
+    """Independent check: each flattened point is where the line through the posed point along the
+    light direction meets the table plane (solved per point); grazing / upward light gives None."""
+    from kpd6d.geometry import random_rotation
+    from kpd6d.synth.tabletop import shadow_pose, table_camera
+
+    rng = np.random.default_rng(3)
+    R_w2c, t_w2c = table_camera(np.radians(40), np.radians(30), 900.0, np.radians(5))
+    R = random_rotation(rng)
+    t = np.array([20.0, -10.0, 850.0])
+    d = np.array([0.3, 0.8, 0.5])  # camera frame: down in the image, away from the camera
+    A, b = shadow_pose(R, t, R_w2c, t_w2c, d)
+    pts = rng.normal(size=(20, 3)) * 50
+    flat = pts @ A.T + b
+    n, c = R_w2c[:, 2], float(R_w2c[:, 2] @ t_w2c)
+    for p, q in zip(pts @ R.T + t, flat, strict=True):
+        s = (c - n @ p) / (n @ d)  # p + s d on the plane
+        np.testing.assert_allclose(q, p + s * d, atol=1e-9)
+        assert abs(n @ q - c) < 1e-9
+    up = R_w2c[:, 2]  # the table normal (up), in the camera frame
+    assert shadow_pose(R, t, R_w2c, t_w2c, -up) is not None  # straight down: a shadow
+    assert shadow_pose(R, t, R_w2c, t_w2c, up) is None  # from below the table
+    graze = np.cross(R_w2c[:, 2], [1.0, 0.0, 0.0])
+    assert shadow_pose(R, t, R_w2c, t_w2c, graze) is None  # parallel to the table
+
+
+def test_cast_shadows_only_darken_the_table(models_dir):
+    """table_shadow_prob: 1 against 0, same seeds: the same ground truth; pixels only get darker,
+    never on an object's visible mask, and every image with a shadow is darker somewhere."""
+    comp = _composer(models_dir, objects_per_image=(2, 3), distractors=(1, 3), photometric={"prob": 0},
+                     table_shadow_prob=1.0)
+    darker_images = 0
+    for i in range(6):
+        comp.cfg.table_shadow_prob = 0.0
+        a = comp.compose(np.random.default_rng([4, i]))
+        comp.cfg.table_shadow_prob = 1.0
+        b = comp.compose(np.random.default_rng([4, i]))
+        assert [x.obj_id for x in a.instances] == [x.obj_id for x in b.instances]
+        for x, y in zip(a.instances, b.instances, strict=True):
+            np.testing.assert_array_equal(x.R, y.R)
+            np.testing.assert_array_equal(x.mask_visib, y.mask_visib)
+        diff = a.rgb.astype(int) - b.rgb.astype(int)
+        assert diff.min() >= -1  # never brighter (but for rounding)
+        changed = (diff > 1).any(axis=2)
+        objects = np.any([x.mask_visib for x in a.instances], axis=0)
+        assert not (changed & objects).any()
+        darker_images += bool(changed.sum() > 20)
+    assert darker_images >= 4
+    comp.renderer.close()
+    from kpd6d.synth.config import SynthConfig
+
+    with pytest.raises(ValueError, match="table_shadow_prob must lie in"):
+        SynthConfig.from_options({"layout": "tabletop", "table_shadow_prob": 1.5})

@@ -23,10 +23,10 @@ LAYOUTS = ("free", "tabletop")
 #: their defaults, so that free-layout runs record (and resume with) the same settings as before
 _TABLETOP_FIELDS = ("layout", "table_elevation_range", "table_roll_range", "table_size_range",
                     "table_cluster_radius", "table_distractor_rest_prob", "table_upright_prob",
-                    "table_room_prob")
+                    "table_room_prob", "table_shadow_prob")
 #: options added after datasets were made without them: left out of ``to_dict`` while at their
 #: defaults, so that those datasets resume with the settings they were made with
-_LATER_FIELDS = ("palette", "distractor_refresh")
+_LATER_FIELDS = ("palette", "distractor_refresh", "table_shadow_prob")
 
 
 def default_K(width: int, height: int) -> np.ndarray:
@@ -89,6 +89,7 @@ class SynthConfig:
     table_cluster_radius: float = 0.15  # objects within this fraction of the camera distance of the look-at point
     table_distractor_rest_prob: float = 0.5  # chance that a distractor rests on the table (else it floats)
     table_upright_prob: float = 0.0  # chance that an object stands as modelled (model +z up) instead of a random stable pose
+    table_shadow_prob: float = 0.0  # chance that the objects and occluders cast shadows of the main light onto the table
     table_room_prob: float = 0.0  # chance that the table stands in a procedural room (floor, walls, posters, screens, furniture)
     # appearance
     lighting: str = "random"  # "random" (Lighting.random per image), "indoor" (Lighting.random_indoor) or "fixed"
@@ -197,7 +198,7 @@ class SynthConfig:
         if lo <= 0:
             raise ValueError(f"table_size_range must be positive (mm), got {list(self.table_size_range)}")
         for name in ("table_cluster_radius", "table_distractor_rest_prob", "table_upright_prob",
-                    "table_room_prob"):
+                    "table_room_prob", "table_shadow_prob"):
             try:
                 v = float(getattr(self, name))
             except (TypeError, ValueError):
@@ -210,6 +211,8 @@ class SynthConfig:
             raise ValueError(f"table_distractor_rest_prob must lie in [0, 1], got {self.table_distractor_rest_prob!r}")
         if not (0.0 <= self.table_upright_prob <= 1.0):
             raise ValueError(f"table_upright_prob must lie in [0, 1], got {self.table_upright_prob!r}")
+        if not (0.0 <= self.table_shadow_prob <= 1.0):
+            raise ValueError(f"table_shadow_prob must lie in [0, 1], got {self.table_shadow_prob!r}")
         if not (0.0 <= self.table_room_prob <= 1.0):
             raise ValueError(f"table_room_prob must lie in [0, 1], got {self.table_room_prob!r}")
 
@@ -230,7 +233,7 @@ class SynthConfig:
         d = {k: plain(v) for k, v in asdict(self).items()}
         defaults = {f.name: f.default for f in fields(self)}
         # as before these options existed (dataset_info.json, resuming)
-        for name in (*(_TABLETOP_FIELDS if self.layout == "free" else ()), *_LATER_FIELDS):
+        for name in dict.fromkeys((*(_TABLETOP_FIELDS if self.layout == "free" else ()), *_LATER_FIELDS)):
             if d[name] == plain(defaults[name]):
                 del d[name]
         return d

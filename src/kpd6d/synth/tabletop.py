@@ -28,7 +28,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 __all__ = ["Footprint", "RestingPoses", "TableScene", "center_of_mass", "footprint", "make_table_mesh", "resting_rotation",
-           "stable_poses", "table_camera"]
+           "shadow_pose", "stable_poses", "table_camera"]
 
 
 # ---------------------------------------------------------------------------------------------
@@ -320,6 +320,23 @@ def plane_depth(K: np.ndarray, R_w2c: np.ndarray, t_w2c: np.ndarray, u: np.ndarr
     with np.errstate(divide="ignore", invalid="ignore"):
         z = float(n @ t_w2c) / denom  # rays have z = 1: the ray parameter is the depth
     return np.where(np.isfinite(z) & (z > 0), z, np.inf)
+
+
+def shadow_pose(R: np.ndarray, t: np.ndarray, R_w2c: np.ndarray, t_w2c: np.ndarray,
+                light_dir: np.ndarray) -> tuple[np.ndarray, np.ndarray] | None:
+    """The model-to-camera map ``(A, b)`` (``x_c = A x_m + b``, ``A`` singular) that flattens a mesh
+    posed ``(R, t)`` onto the table plane z = 0 along ``light_dir`` (camera frame, towards where the
+    light shines): drawn with it, the mesh is its own cast shadow (a planar projection shadow).
+    ``None`` when the light does not shine down onto the plane (grazing within ~6 degrees, or from
+    below)."""
+    n = R_w2c[:, 2]  # the table normal (camera frame); the plane is n . x = c
+    c = float(n @ t_w2c)
+    d = np.asarray(light_dir, np.float64) / np.linalg.norm(light_dir)
+    nd = float(n @ d)
+    if nd > -0.1:
+        return None
+    M = np.eye(3) - np.outer(d, n) / nd  # x -> x - ((n . x - c) / (n . d)) d
+    return M @ np.asarray(R, np.float64), M @ np.asarray(t, np.float64) + (c / nd) * d
 
 
 def depth_tolerance(z: np.ndarray, znear: float) -> np.ndarray:

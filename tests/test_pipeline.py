@@ -281,3 +281,74 @@ def test_depth_calibration_scales_the_reported_translations_and_the_refined_boxe
     for bad in (0, -1.0, float("nan"), "big", {"x": 1.0}):
         with pytest.raises(PipelineInputError, match="depth_calibration"):
             PosePipeline(DETECTORS.build("oracle"), FakeKPD({}, {}), pnp="epnp", device="cpu", depth_calibration=bad)
+
+
+class DecoyAwareKPD(FakeKPD):
+    """As FakeKPD on boxes that overlap the object's true box; on a box elsewhere (a false detection)
+    scattered keypoints with low confidence, as a KPD gives on background."""
+
+    def __init__(self, keypoints_3d, gt, true_boxes):
+        super().__init__(keypoints_3d, gt)
+        self.true_boxes = true_boxes
+        self.rng = np.random.default_rng(0)
+
+    def predict_keypoints(self, images, boxes, image_index, obj_ids):
+        kps, confs = super().predict_keypoints(images, boxes, image_index, obj_ids)
+        for n, (box, b, oid) in enumerate(zip(boxes.cpu().numpy(), image_index.tolist(), obj_ids.tolist())):
+            tx, ty, tw, th = self.true_boxes[(b, oid)]
+            x, y, w, h = box
+            if x > tx + tw or tx > x + w or y > ty + th or ty > y + h:  # no overlap: background
+                kps[n] = torch.tensor(self.rng.uniform([x, y], [x + w, y + h], (K_PTS, 2)), dtype=torch.float32)
+                confs[n] = torch.full((K_PTS,), 0.15)
+        return kps, confs
+
+
+def test_candidates_keep_the_pose_the_keypoints_verify():
+    """A false detection of object 1 scores above the true one: the best-scoring box alone (what
+    one_per_object gives) yields a wrong pose; with candidates=2 both are estimated and the pose with
+    the higher pose confidence (the true box's) is kept, one per object."""
+    from kpd6d.pnp.estimator import best_candidates, candidate_options, top_candidates
+
+    kp3d, gt, targets = _scene(np.random.default_rng(5))
+    true_boxes = {(b, int(o)): box for b, t in enumerate(targets) for box, o in zip(t["boxes"], t["obj_ids"])}
+    decoy = np.array([500.0, 380.0, 90.0, 80.0])  # far from every object
+    t0 = targets[0]
+    with_decoy = [{"boxes": np.vstack([decoy, t0["boxes"]]), "obj_ids": np.concatenate([[1], t0["obj_ids"]]),
+                   "scores": np.concatenate([[0.99], t0["scores"]])}, targets[1]]
+
+    def run(candidates, one_per_object):
+        det = DETECTORS.build("oracle", one_per_object=one_per_object)
+        pipe = PosePipeline(det, DecoyAwareKPD(kp3d, gt, true_boxes), pnp="sqpnp", top_l=None, device="cpu",
+                            candidates=candidates)
+        return pipe.predict_batch(_images(), LINEMOD_K, with_decoy)
+
+    def t_error(p, b):
+        return np.linalg.norm(p["t"] - gt[(b, p["obj_id"])][1]) if p["ok"] else np.inf
+
+    single = run(1, True)  # the detector's best box per object: the decoy for object 1
+    p1 = [p for p in single[0] if p["obj_id"] == 1]
+    assert len(p1) == 1 and t_error(p1[0], 0) > 100.0
+    both = run(1, False)  # every detection gives a pose
+    assert sorted(p["obj_id"] for p in both[0]) == [1, 1, 2]
+    verified = run(2, False)
+    assert [sorted(p["obj_id"] for p in o) for o in verified] == [[1, 2], [3]]
+    for b, poses in enumerate(verified):
+        for p in poses:
+            assert t_error(p, b) < 10.0
+    assert [p["candidates"] for p in verified[0] if p["obj_id"] == 1] == [2]
+    assert all(p["candidates"] == 1 for p in verified[1])
+
+    # the pure helpers
+    dets = [{"image_index": 0, "obj_id": 1, "score": s, "box": [s] * 4} for s in (0.2, 0.9, 0.5, 0.7)]
+    dets += [{"image_index": 1, "obj_id": 1, "score": 0.1, "box": [0] * 4}]
+    assert [d["score"] for d in top_candidates(dets, 2)] == [0.9, 0.7, 0.1]  # detection order kept
+    poses = [{"obj_id": 1, "score": 0.9, "confidence": 0.2}, {"obj_id": 1, "score": 0.5, "confidence": 0.6},
+             {"obj_id": 2, "score": 0.3, "confidence": 0.0}, {"obj_id": 1, "score": 0.7, "confidence": 0.6}]
+    kept = best_candidates(poses)
+    assert [(p["obj_id"], p["score"], p["candidates"]) for p in kept] == [(1, 0.7, 3), (2, 0.3, 1)]
+    assert candidate_options(1, "det.pt") == {} and candidate_options(3, "oracle") == {}
+    assert candidate_options(3, "det.pt") == {"candidates": 3, "one_per_object": False}
+    with pytest.raises(ValueError, match="candidates must be an integer >= 1, got 0"):
+        candidate_options(0, "det.pt")
+    with pytest.raises(PipelineInputError, match="candidates must be an integer >= 1"):
+        PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt), candidates=0, device="cpu")

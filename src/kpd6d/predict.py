@@ -315,6 +315,7 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
     from omegaconf import OmegaConf
 
     from kpd6d.pipeline import PosePipeline
+    from kpd6d.pnp.estimator import candidate_options
 
     backend = str(cfg.get("backend") or "torch")
     torch_backend = backend == "torch"  # the other backends run an export (export_dir=): no checkpoints needed
@@ -328,7 +329,8 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
                                     top_l=cfg.select.top_l, refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
                                     min_confidence=float(cfg.get("min_confidence", 0.0) or 0.0), device=cfg.device,
                                     box_scale=cfg_float(cfg, "box_scale", 1.0),
-                                    depth_calibration=to_plain(cfg.get("depth_calibration", 1.0)))
+                                    depth_calibration=to_plain(cfg.get("depth_calibration", 1.0)),
+                                    **candidate_options(cfg.get("candidates", 1), det))
     max_frames = cfg.get("max_frames")
     return predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=cfg_int(cfg, "batch_size"),
                           overlays=bool(cfg.overlays), progress=bool(cfg.progress),

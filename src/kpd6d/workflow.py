@@ -143,6 +143,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     from kpd6d.data import BopDataset
     from kpd6d.evaluation.runner import evaluate
     from kpd6d.pipeline import PosePipeline
+    from kpd6d.pnp.estimator import candidate_options
 
     root = Path(cfg.data.root)
     if not root.is_dir():
@@ -160,7 +161,8 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
                                         device=cfg.device, obj_ids=obj_ids,
                                         refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
                                         box_scale=cfg_float(cfg, "box_scale", 1.0),
-                                        depth_calibration=_depth_calibration(cfg.get("depth_calibration", 1.0)))
+                                        depth_calibration=_depth_calibration(cfg.get("depth_calibration", 1.0)),
+                                        **candidate_options(cfg.get("candidates", 1), cfg.detector_ckpt, ValueError))
     covered = sorted(int(o) for o in pipeline.kpd.keypoints_3d)
     wanted = obj_ids if obj_ids is not None else covered
     missing = sorted(set(wanted) - set(covered))
@@ -170,6 +172,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
+            **({"candidates": pipeline.candidates} if pipeline.candidates > 1 else {}),
             "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device)}
     if backend != "torch":
         info.update(backend=backend, export_dir=str(cfg.export_dir))
@@ -211,6 +214,7 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
         "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
         "batch_size": cfg_int(cfg, "evaluate.batch_size"), "refine_boxes": to_int(cfg.evaluate.get("refine_boxes", 0) or 0, "evaluate.refine_boxes"),
         "box_scale": cfg_float(cfg, "evaluate.box_scale", 1.0),
+        "candidates": to_int(cfg.evaluate.get("candidates", 1) or 1, "evaluate.candidates"),
         "depth_calibration": _depth_calibration(cfg.evaluate.get("depth_calibration", 1.0)),
         "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress), **over,
     })

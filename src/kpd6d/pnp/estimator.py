@@ -7,8 +7,11 @@ detector's output, the estimation loop with box refinement (``refine_boxes``: re
 the object's surface points projected with the estimated pose), ``box_scale`` (the KPD crops on each
 box grown by this factor about its centre; the boxes reported and refined stay as they are),
 ``depth_calibration`` (each estimated translation multiplied by a factor, one for all objects or one per
-object: a depth calibration fitted on synthetic validation, :mod:`kpd6d.evaluation.calibration`) and
-``last_timings``. A subclass says
+object: a depth calibration fitted on synthetic validation, :mod:`kpd6d.evaluation.calibration`),
+``candidates`` (for scenes where each object appears at most once, as in BOP's LM-O: the ``n``
+highest-scoring detections of each object in an image all go through KPD + PnP and the pose with the
+highest pose confidence is kept: the keypoints verify the detector's hypotheses; give the detector
+``one_per_object=False`` so that it offers more than one) and ``last_timings``. A subclass says
 how its images become a batch and how its networks run:
 
 * ``_batch(images)`` → the batch its networks take; ``_num_images(x)``, ``_image_hw(x)`` → (H, W);
@@ -37,7 +40,8 @@ from kpd6d.geometry import bbox_from_points, check_box_inputs, check_intrinsics,
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
-__all__ = ["PoseEstimatorBase", "build_pnp", "parse_depth_calibration", "scale_boxes"]
+__all__ = ["PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options", "parse_depth_calibration", "scale_boxes",
+           "top_candidates"]
 
 
 def scale_boxes(boxes: np.ndarray, factor: float) -> np.ndarray:
@@ -91,6 +95,44 @@ def parse_depth_calibration(value: Any, error: type[Exception] = ValueError) -> 
     return factor(default, " (default)"), out
 
 
+def candidate_options(candidates: Any, detector_ckpt: Any, error: type[Exception] = ValueError) -> dict:
+    """The pipeline keywords of a config's ``candidates``: with n > 1 the detector must offer several
+    boxes per object (``one_per_object=False``); with the oracle (ground-truth boxes) it is 1."""
+    n = 1 if candidates is None else candidates
+    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
+        raise error(f"candidates must be an integer >= 1, got {candidates!r}")
+    if n == 1 or str(detector_ckpt) == "oracle":
+        return {}
+    return {"candidates": int(n), "one_per_object": False}
+
+
+def top_candidates(dets: list[dict], n: int) -> list[dict]:
+    """The ``n`` highest-scoring of ``dets`` (flat detections: image_index, obj_id, score, box) of each
+    object in each image, in their order."""
+    kept, count = [], {}
+    for d in sorted(dets, key=lambda d: -d["score"]):
+        key = (d["image_index"], d["obj_id"])
+        if count.get(key, 0) < n:
+            count[key] = count.get(key, 0) + 1
+            kept.append(d)
+    order = {id(d): i for i, d in enumerate(dets)}
+    return sorted(kept, key=lambda d: order[id(d)])
+
+
+def best_candidates(poses: list[dict]) -> list[dict]:
+    """One pose per object of one image: among its candidates, the one with the highest pose
+    ``confidence`` (a failed pose has 0), ties to the higher detection score; in score order. The
+    kept pose records how many candidates it was chosen from (``candidates``)."""
+    best: dict[int, dict] = {}
+    n: dict[int, int] = {}
+    for p in poses:
+        o = p["obj_id"]
+        n[o] = n.get(o, 0) + 1
+        if o not in best or (p["confidence"], p["score"]) > (best[o]["confidence"], best[o]["score"]):
+            best[o] = p
+    return [{**p, "candidates": n[p["obj_id"]]} for p in sorted(best.values(), key=lambda p: -p["score"])]
+
+
 def _positive_number(v, name: str, error: type[Exception]) -> float:
     """``float(v)`` when it is finite and > 0; else ``error`` naming ``name`` and the value."""
     try:
@@ -131,9 +173,12 @@ class PoseEstimatorBase:
 
     def _set_options(self, pnp: Any, top_l: int | None, refine_boxes: int, min_confidence: float,
                      residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                     depth_calibration: Any = 1.0) -> None:
+                     depth_calibration: Any = 1.0, candidates: int = 1) -> None:
         """Check and keep the settings both pipelines take."""
         err = self.input_error
+        if isinstance(candidates, bool) or not isinstance(candidates, int | np.integer) or candidates < 1:
+            raise err(f"candidates must be an integer >= 1 (1: every detection gives a pose), got {candidates!r}")
+        self.candidates = int(candidates)
         self.depth_calibration_default, self.depth_calibration_per_object = parse_depth_calibration(depth_calibration, err)
         self.box_scale = _positive_number(box_scale, "box_scale", err)
         if top_l is not None and int(top_l) < 4:
@@ -182,9 +227,13 @@ class PoseEstimatorBase:
         x = self._batch(images)
         Ks = check_intrinsics(K, self._num_images(x), self.input_error)
         dets = self._detect(x, targets)
+        if self.candidates > 1:
+            dets = top_candidates(dets, self.candidates)
         t1 = time.perf_counter()
         out = self._estimate(x, Ks, [d["box"] for d in dets], [d["image_index"] for d in dets],
                              [d["obj_id"] for d in dets], [d["score"] for d in dets])
+        if self.candidates > 1:
+            out = [best_candidates(poses) for poses in out]
         self.last_timings["detect"] = t1 - t0
         self.last_timings["total"] = time.perf_counter() - t0
         return out

@@ -40,8 +40,8 @@ from kpd6d.geometry import bbox_from_points, check_box_inputs, check_intrinsics,
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
-__all__ = ["PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options", "parse_depth_calibration", "scale_boxes",
-           "top_candidates"]
+__all__ = ["PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options", "check_candidates",
+           "parse_depth_calibration", "scale_boxes", "top_candidates"]
 
 
 def scale_boxes(boxes: np.ndarray, factor: float) -> np.ndarray:
@@ -95,28 +95,33 @@ def parse_depth_calibration(value: Any, error: type[Exception] = ValueError) -> 
     return factor(default, " (default)"), out
 
 
-def candidate_options(candidates: Any, detector_ckpt: Any, error: type[Exception] = ValueError) -> dict:
-    """The pipeline keywords of a config's ``candidates``: with n > 1 the detector must offer several
-    boxes per object (``one_per_object=False``); with the oracle (ground-truth boxes) it is 1."""
+def check_candidates(candidates: Any, error: type[Exception] = ValueError) -> int:
+    """``candidates`` as an int >= 1 (None: 1); anything else raises ``error`` naming the value."""
     n = 1 if candidates is None else candidates
     if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
         raise error(f"candidates must be an integer >= 1, got {candidates!r}")
+    return int(n)
+
+
+def candidate_options(candidates: Any, detector_ckpt: Any, error: type[Exception] = ValueError) -> dict:
+    """The pipeline keywords of a config's ``candidates``: with n > 1 the detector must offer several
+    boxes per object (``one_per_object=False``); with the oracle (ground-truth boxes) it is 1."""
+    n = check_candidates(candidates, error)
     if n == 1 or str(detector_ckpt) == "oracle":
         return {}
-    return {"candidates": int(n), "one_per_object": False}
+    return {"candidates": n, "one_per_object": False}
 
 
 def top_candidates(dets: list[dict], n: int) -> list[dict]:
     """The ``n`` highest-scoring of ``dets`` (flat detections: image_index, obj_id, score, box) of each
     object in each image, in their order."""
-    kept, count = [], {}
-    for d in sorted(dets, key=lambda d: -d["score"]):
-        key = (d["image_index"], d["obj_id"])
-        if count.get(key, 0) < n:
-            count[key] = count.get(key, 0) + 1
-            kept.append(d)
-    order = {id(d): i for i, d in enumerate(dets)}
-    return sorted(kept, key=lambda d: order[id(d)])
+    keep, count = set(), {}
+    for i in sorted(range(len(dets)), key=lambda i: -dets[i]["score"]):
+        key = (dets[i]["image_index"], dets[i]["obj_id"])
+        count[key] = count.get(key, 0) + 1
+        if count[key] <= n:
+            keep.add(i)
+    return [d for i, d in enumerate(dets) if i in keep]
 
 
 def best_candidates(poses: list[dict]) -> list[dict]:
@@ -176,9 +181,7 @@ class PoseEstimatorBase:
                      depth_calibration: Any = 1.0, candidates: int = 1) -> None:
         """Check and keep the settings both pipelines take."""
         err = self.input_error
-        if isinstance(candidates, bool) or not isinstance(candidates, int | np.integer) or candidates < 1:
-            raise err(f"candidates must be an integer >= 1 (1: every detection gives a pose), got {candidates!r}")
-        self.candidates = int(candidates)
+        self.candidates = check_candidates(candidates, err)
         self.depth_calibration_default, self.depth_calibration_per_object = parse_depth_calibration(depth_calibration, err)
         self.box_scale = _positive_number(box_scale, "box_scale", err)
         if top_l is not None and int(top_l) < 4:

@@ -417,10 +417,8 @@ class SceneComposer:
             if d_items or table.room:  # occluders, or room furniture that may stand in front
                 in_front = col.depth < seg.depth * (1.0 - 1e-6) - 1e-3
                 vs, us = np.nonzero(in_front)
-                if len(us):
-                    z = col.depth[vs, us].astype(np.float64)  # the colour pass's depth there
-                    plane = plane_depth(self.K, cam.R_w2c, cam.t_w2c, us, vs)
-                    table_tie = z >= plane - depth_tolerance(z, self.renderer.znear)
+                if len(us):  # the colour pass's depth there is the table plane's: a contact tie
+                    table_tie = self._table_seen(cam, col.depth, us, vs)
                     in_front[vs[table_tie], us[table_tie]] = False
                 masks = [m & ~in_front for m in base]
             coverers = [[base[j] for j in range(n) if j != i] for i in range(n)]
@@ -564,6 +562,12 @@ class SceneComposer:
         return SceneSample(rgb=rgb, depth=depth, K=self.K.copy(), instances=instances, attempts=attempts,
                            table=table_cam, distractor_items=d_items)
 
+    def _table_seen(self, cam: TableScene, depth: np.ndarray, us: np.ndarray, vs: np.ndarray) -> np.ndarray:
+        """Whether the rendered ``depth`` at pixels (us, vs) is the table plane's (within
+        :func:`depth_tolerance`): the table is what the camera sees there."""
+        z = depth[vs, us].astype(np.float64)
+        return z >= plane_depth(self.K, cam.R_w2c, cam.t_w2c, us, vs) - depth_tolerance(z, self.renderer.znear)
+
     def _cast_shadows(self, rng, rgb, depth, cam: TableScene, instances, d_items, lighting):
         """Darken the table where the objects and occluders cast a shadow of the strongest directional
         light: planar projection shadows (:func:`shadow_pose`) drawn in one segmentation pass, kept
@@ -586,13 +590,11 @@ class SceneComposer:
         vs, us = np.nonzero(shadow & (depth > 0))
         if not len(us):
             return rgb
-        z = depth[vs, us].astype(np.float64)
-        on_table = z >= plane_depth(self.K, cam.R_w2c, cam.t_w2c, us, vs) - depth_tolerance(z, self.renderer.znear)
+        on_table = self._table_seen(cam, depth, us, vs)
         table_px = np.zeros(depth.shape, np.float32)
         table_px[vs[on_table], us[on_table]] = 1.0
-        soft = cv2.GaussianBlur(table_px, (0, 0), blur) * table_px if blur > 0 else table_px
         # the blur spreads the shadow's edge inwards only (a penumbra inside the hard edge)
-        gain = 1.0 - strength * soft
+        gain = 1.0 - strength * cv2.GaussianBlur(table_px, (0, 0), blur) * table_px
         return np.clip(rgb.astype(np.float32) * gain[..., None] + 0.5, 0, 255).astype(np.uint8)
 
     def _forget_mesh(self, mesh) -> None:

@@ -136,6 +136,8 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     # inference settings chosen on synthetic validation: RANSAC + SQPnP refit on all keypoints, depth calibration
     assert full.pnp.name == "sqpnp_ransac" and full.pnp.relative_error == 0.2
     assert full.select.top_l is None and full.evaluate.depth_calibration == "auto"
+    assert full.evaluate.candidates == 5 and full.detector.one_per_object
+    assert full.data.options.palette == "natural" and full.data.options.distractor_refresh == 100
 
     run = tmp_path / "run"
     m = run_experiment(cfg, run)

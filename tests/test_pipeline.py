@@ -293,9 +293,12 @@ class DecoyAwareKPD(FakeKPD):
         self.rng = np.random.default_rng(0)
 
     def predict_keypoints(self, images, boxes, image_index, obj_ids):
+        any_pose = next(iter(self.gt.values()))  # an object not in the image: a crop of background
+        for b, oid in zip(image_index.tolist(), obj_ids.tolist()):
+            self.gt.setdefault((b, oid), any_pose)
         kps, confs = super().predict_keypoints(images, boxes, image_index, obj_ids)
         for n, (box, b, oid) in enumerate(zip(boxes.cpu().numpy(), image_index.tolist(), obj_ids.tolist())):
-            tx, ty, tw, th = self.true_boxes[(b, oid)]
+            tx, ty, tw, th = self.true_boxes.get((b, oid), (-1e4, -1e4, 1.0, 1.0))
             x, y, w, h = box
             if x > tx + tw or tx > x + w or y > ty + th or ty > y + h:  # no overlap: background
                 kps[n] = torch.tensor(self.rng.uniform([x, y], [x + w, y + h], (K_PTS, 2)), dtype=torch.float32)
@@ -352,3 +355,53 @@ def test_candidates_keep_the_pose_the_keypoints_verify():
         candidate_options(0, "det.pt")
     with pytest.raises(PipelineInputError, match="candidates must be an integer >= 1"):
         PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt), candidates=0, device="cpu")
+
+
+def test_any_class_candidates_recover_a_misclassified_object():
+    """The detector labels object 1's box as object 2 and puts its only object-1 box on clutter: per
+    class candidates cannot find object 1; with any_class the image's best boxes are also tried as
+    every object, and the keypoints pick object 1's own box for object 1 and object 2's for object 2."""
+    from kpd6d.pnp.estimator import candidate_options, candidates_record, check_candidates, top_candidates
+
+    kp3d, gt, targets = _scene(np.random.default_rng(5))
+    true_boxes = {(b, int(o)): box for b, t in enumerate(targets) for box, o in zip(t["boxes"], t["obj_ids"])}
+    decoy = np.array([500.0, 380.0, 90.0, 80.0])
+    box1, box2 = true_boxes[(0, 1)], true_boxes[(0, 2)]
+    confused = [{"boxes": np.stack([decoy, box1, box2]), "obj_ids": np.array([1, 2, 2]),
+                 "scores": np.array([0.99, 0.8, 0.7])}, targets[1]]
+
+    def run(candidates):
+        pipe = PosePipeline(DETECTORS.build("oracle", one_per_object=False), DecoyAwareKPD(kp3d, gt, true_boxes),
+                            pnp="sqpnp", top_l=None, device="cpu", candidates=candidates)
+        return pipe.predict_batch(_images(), LINEMOD_K, confused)
+
+    def t_error(p, b):
+        return np.linalg.norm(p["t"] - gt[(b, p["obj_id"])][1]) if p["ok"] and (b, p["obj_id"]) in gt else np.inf
+
+    per_class = run(2)
+    assert [p["obj_id"] for p in per_class[0]] == [1, 2] and t_error(per_class[0][0], 0) > 100.0
+    assert t_error(per_class[0][1], 0) < 10.0
+    both = run({"per_object": 2, "any_class": 3})
+    by_obj = {p["obj_id"]: p for p in both[0]}
+    assert t_error(by_obj[1], 0) < 10.0 and t_error(by_obj[2], 0) < 10.0
+    # object 1: its decoy + object 2's two boxes; object 2: its two + the decoy; object 3 (known to
+    # the KPD, not in the image): the three boxes, none of them its own: its best pose is on clutter
+    assert (by_obj[1]["candidates"], by_obj[2]["candidates"], by_obj[3]["candidates"]) == (3, 3, 3)
+    assert by_obj[3]["confidence"] < min(by_obj[1]["confidence"], by_obj[2]["confidence"])
+    # image 1 (one detection of object 3): objects 1 and 2 are also tried on it
+    assert sorted(p["obj_id"] for p in both[1]) == [1, 2, 3] and t_error(
+        next(p for p in both[1] if p["obj_id"] == 3), 1) < 10.0
+
+    # the pure helpers
+    dets = [{"image_index": 0, "obj_id": o, "score": s, "box": [s] * 4} for o, s in ((1, 0.9), (2, 0.5), (2, 0.4))]
+    got = [(d["obj_id"], d["score"]) for d in top_candidates(dets, 1, any_class=2, obj_ids=[1, 2, 3])]
+    assert got == [(1, 0.9), (2, 0.5), (2, 0.9), (3, 0.9), (1, 0.5), (3, 0.5)]
+    assert check_candidates(None) == (1, 0) and check_candidates(4) == (4, 0)
+    assert check_candidates({"any_class": 2}) == (1, 2) and candidates_record(1, 2) == {"per_object": 1, "any_class": 2}
+    assert candidate_options({"per_object": 1, "any_class": 2}, "det.pt") == {
+        "candidates": {"per_object": 1, "any_class": 2}, "one_per_object": False}
+    assert candidate_options({"per_object": 3, "any_class": 0}, "det.pt") == {"candidates": 3, "one_per_object": False}
+    with pytest.raises(ValueError, match=r"candidates.any_class must be an integer >= 0, got -1"):
+        check_candidates({"any_class": -1})
+    with pytest.raises(ValueError, match=r"evaluate.candidates: unknown key\(s\) \['top'\]; known"):
+        check_candidates({"top": 2}, key="evaluate.candidates")

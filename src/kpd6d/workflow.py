@@ -143,7 +143,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     from kpd6d.data import BopDataset
     from kpd6d.evaluation.runner import evaluate
     from kpd6d.pipeline import PosePipeline
-    from kpd6d.pnp.estimator import candidate_options
+    from kpd6d.pnp.estimator import candidate_options, candidates_record
 
     root = Path(cfg.data.root)
     if not root.is_dir():
@@ -172,7 +172,8 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
-            **({"candidates": pipeline.candidates} if pipeline.candidates > 1 else {}),
+            **({"candidates": candidates_record(pipeline.candidates, pipeline.candidates_any_class)}
+               if pipeline.candidates > 1 or pipeline.candidates_any_class else {}),
             "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device)}
     if backend != "torch":
         info.update(backend=backend, export_dir=str(cfg.export_dir))
@@ -208,13 +209,17 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
     ``max_frames``: the run's ``evaluate.max_frames`` unless given)."""
     from omegaconf import OmegaConf
 
+    from kpd6d.config import ConfigError
+    from kpd6d.pnp.estimator import candidates_record, check_candidates
+
     return OmegaConf.create({
         "data": {"root": str(root), "split": split, "targets": "auto", "obj_ids": to_plain(cfg.objects.obj_ids),
                  "max_frames": cfg.evaluate.max_frames if max_frames == "run" else max_frames},
         "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
         "batch_size": cfg_int(cfg, "evaluate.batch_size"), "refine_boxes": to_int(cfg.evaluate.get("refine_boxes", 0) or 0, "evaluate.refine_boxes"),
         "box_scale": cfg_float(cfg, "evaluate.box_scale", 1.0),
-        "candidates": to_int(cfg.evaluate.get("candidates", 1) or 1, "evaluate.candidates"),
+        "candidates": candidates_record(*check_candidates(to_plain(cfg.evaluate.get("candidates", 1)), ConfigError,
+                                                          "evaluate.candidates")),
         "depth_calibration": _depth_calibration(cfg.evaluate.get("depth_calibration", 1.0)),
         "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress), **over,
     })

@@ -11,7 +11,8 @@ object: a depth calibration fitted on synthetic validation, :mod:`kpd6d.evaluati
 ``candidates`` (for scenes where each object appears at most once, as in BOP's LM-O: the ``n``
 highest-scoring detections of each object in an image all go through KPD + PnP and the pose with the
 highest pose confidence is kept: the keypoints verify the detector's hypotheses; give the detector
-``one_per_object=False`` so that it offers more than one) and ``last_timings``. A subclass says
+``one_per_object=False`` so that it offers more than one; ``{per_object: n, any_class: m}`` also tries
+the m best boxes of each image, whatever their class, as every object) and ``last_timings``. A subclass says
 how its images become a batch and how its networks run:
 
 * ``_batch(images)`` → the batch its networks take; ``_num_images(x)``, ``_image_hw(x)`` → (H, W);
@@ -40,8 +41,8 @@ from kpd6d.geometry import bbox_from_points, check_box_inputs, check_intrinsics,
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
-__all__ = ["PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options", "check_candidates",
-           "parse_depth_calibration", "scale_boxes", "top_candidates"]
+__all__ = ["PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options", "candidates_record",
+           "check_candidates", "parse_depth_calibration", "scale_boxes", "top_candidates"]
 
 
 def scale_boxes(boxes: np.ndarray, factor: float) -> np.ndarray:
@@ -95,33 +96,73 @@ def parse_depth_calibration(value: Any, error: type[Exception] = ValueError) -> 
     return factor(default, " (default)"), out
 
 
-def check_candidates(candidates: Any, error: type[Exception] = ValueError) -> int:
-    """``candidates`` as an int >= 1 (None: 1); anything else raises ``error`` naming the value."""
-    n = 1 if candidates is None else candidates
-    if isinstance(n, bool) or not isinstance(n, int | np.integer) or n < 1:
-        raise error(f"candidates must be an integer >= 1, got {candidates!r}")
-    return int(n)
+def check_candidates(candidates: Any, error: type[Exception] = ValueError,
+                     key: str = "candidates") -> tuple[int, int]:
+    """``candidates`` as (per_object, any_class): an int n >= 1 is (n, 0) (None: (1, 0)); a mapping
+    ``{per_object: n, any_class: m}`` (n >= 1, m >= 0; either may be left out: 1 and 0) gives both.
+    Anything else raises ``error`` naming ``key`` and the value."""
+    def count(v, low: int, name: str) -> int:
+        if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low:
+            raise error(f"{name} must be an integer >= {low}, got {v!r}")
+        return int(v)
+
+    if candidates is None:
+        return 1, 0
+    if isinstance(candidates, Mapping) or hasattr(candidates, "keys"):
+        spec = dict(candidates)
+        unknown = sorted(set(map(str, spec)) - {"per_object", "any_class"})
+        if unknown:
+            raise error(f"{key}: unknown key(s) {unknown}; known: ['any_class', 'per_object']")
+        return (count(spec.get("per_object", 1), 1, f"{key}.per_object"),
+                count(spec.get("any_class", 0), 0, f"{key}.any_class"))
+    return count(candidates, 1, key), 0
+
+
+def candidates_record(per_object: int, any_class: int) -> Any:
+    """The plain value of a candidates setting: n, or ``{per_object: n, any_class: m}`` when m > 0."""
+    return int(per_object) if any_class == 0 else {"per_object": int(per_object), "any_class": int(any_class)}
 
 
 def candidate_options(candidates: Any, detector_ckpt: Any, error: type[Exception] = ValueError) -> dict:
-    """The pipeline keywords of a config's ``candidates``: with n > 1 the detector must offer several
-    boxes per object (``one_per_object=False``); with the oracle (ground-truth boxes) it is 1."""
-    n = check_candidates(candidates, error)
-    if n == 1 or str(detector_ckpt) == "oracle":
+    """The pipeline keywords of a config's ``candidates``: with more than one candidate per object the
+    detector must offer several boxes per object (``one_per_object=False``); with the oracle
+    (ground-truth boxes) nothing."""
+    n, m = check_candidates(candidates, error)
+    if (n == 1 and m == 0) or str(detector_ckpt) == "oracle":
         return {}
-    return {"candidates": n, "one_per_object": False}
+    return {"candidates": candidates_record(n, m), "one_per_object": False}
 
 
-def top_candidates(dets: list[dict], n: int) -> list[dict]:
+def top_candidates(dets: list[dict], n: int, any_class: int = 0, obj_ids: Any = ()) -> list[dict]:
     """The ``n`` highest-scoring of ``dets`` (flat detections: image_index, obj_id, score, box) of each
-    object in each image, in their order."""
+    object in each image, in their order; with ``any_class`` = m > 0, after them the m highest-scoring
+    boxes of each image, whatever their class, once more as a candidate of each of ``obj_ids`` (the
+    objects the KPD knows) that does not already have that box: a detector that mistakes one object
+    for another still found it, and the keypoints can tell."""
     keep, count = set(), {}
-    for i in sorted(range(len(dets)), key=lambda i: -dets[i]["score"]):
+    order = sorted(range(len(dets)), key=lambda i: -dets[i]["score"])
+    for i in order:
         key = (dets[i]["image_index"], dets[i]["obj_id"])
         count[key] = count.get(key, 0) + 1
         if count[key] <= n:
             keep.add(i)
-    return [d for i, d in enumerate(dets) if i in keep]
+    out = [d for i, d in enumerate(dets) if i in keep]
+    if any_class <= 0:
+        return out
+    have = {(d["image_index"], d["obj_id"], tuple(d["box"])) for d in out}
+    per_image: dict[int, int] = {}
+    for i in order:
+        d = dets[i]
+        b = d["image_index"]
+        per_image[b] = per_image.get(b, 0) + 1
+        if per_image[b] > any_class:
+            continue
+        for o in obj_ids:
+            key = (b, int(o), tuple(d["box"]))
+            if key not in have:
+                have.add(key)
+                out.append({**d, "obj_id": int(o)})
+    return out
 
 
 def best_candidates(poses: list[dict]) -> list[dict]:
@@ -178,10 +219,10 @@ class PoseEstimatorBase:
 
     def _set_options(self, pnp: Any, top_l: int | None, refine_boxes: int, min_confidence: float,
                      residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                     depth_calibration: Any = 1.0, candidates: int = 1) -> None:
+                     depth_calibration: Any = 1.0, candidates: Any = 1) -> None:
         """Check and keep the settings both pipelines take."""
         err = self.input_error
-        self.candidates = check_candidates(candidates, err)
+        self.candidates, self.candidates_any_class = check_candidates(candidates, err)
         self.depth_calibration_default, self.depth_calibration_per_object = parse_depth_calibration(depth_calibration, err)
         self.box_scale = _positive_number(box_scale, "box_scale", err)
         if top_l is not None and int(top_l) < 4:
@@ -230,12 +271,13 @@ class PoseEstimatorBase:
         x = self._batch(images)
         Ks = check_intrinsics(K, self._num_images(x), self.input_error)
         dets = self._detect(x, targets)
-        if self.candidates > 1:
-            dets = top_candidates(dets, self.candidates)
+        verify = self.candidates > 1 or self.candidates_any_class > 0
+        if verify:
+            dets = top_candidates(dets, self.candidates, self.candidates_any_class, sorted(self.kpd.keypoints_3d))
         t1 = time.perf_counter()
         out = self._estimate(x, Ks, [d["box"] for d in dets], [d["image_index"] for d in dets],
                              [d["obj_id"] for d in dets], [d["score"] for d in dets])
-        if self.candidates > 1:
+        if verify:
             out = [best_candidates(poses) for poses in out]
         self.last_timings["detect"] = t1 - t0
         self.last_timings["total"] = time.perf_counter() - t0

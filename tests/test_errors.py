@@ -151,6 +151,28 @@ def test_mssd_mspd_match_brute_force_with_many_symmetries():
             _brute(Re, te, Rg, tg, pts, syms, LINEMOD_K), rel=1e-8)
 
 
+def test_symmetric_proj2d_is_min_over_symmetries_of_the_mean_cv2():
+    """Against cv2.projectPoints and an explicit loop over the symmetries (min over S of the mean)."""
+    rng = np.random.default_rng(7)
+    pts = rng.uniform(-40, 40, (50, 3))
+    info = {"symmetries_discrete": [list(_T(RZ180, [0, 0, 6.0]).ravel())],
+            "symmetries_continuous": [{"axis": [0, 1, 0], "offset": [2.0, 0, -1.0]}]}
+    syms = symmetry_transforms(info, continuous_step_deg=30)  # 2 x 12
+    for _ in range(3):
+        Re, Rg = Rotation.random(2, random_state=rng.integers(1 << 30)).as_matrix()
+        te, tg = np.array([4.0, -1, 600]), np.array([-2.0, 3, 610])
+        pe = cv2.projectPoints(pts, cv2.Rodrigues(Re)[0], te, LINEMOD_K, None)[0].reshape(-1, 2)
+        means = []
+        for S in syms:
+            R_s, t_s = Rg @ S[:3, :3], Rg @ S[:3, 3] + tg
+            pg = cv2.projectPoints(pts, cv2.Rodrigues(R_s)[0], t_s, LINEMOD_K, None)[0].reshape(-1, 2)
+            means.append(np.linalg.norm(pe - pg, axis=1).mean())
+        got = proj2d_error(Re, te, Rg, tg, pts, LINEMOD_K, syms)
+        assert got == pytest.approx(min(means), rel=1e-8)
+        assert got <= proj2d_error(Re, te, Rg, tg, pts, LINEMOD_K) + 1e-9  # identity is one of the transforms
+    assert proj2d_error(np.full((3, 3), np.nan), Z3, I3, [0, 0, 100.0], TRI, LINEMOD_K, syms[:2, :, :]) == math.inf
+
+
 # -- symmetry transforms -----------------------------------------------------------------------
 def test_symmetry_transforms_discrete_only():
     S = _T(RZ180, [1.0, 2.0, 3.0])
@@ -215,3 +237,6 @@ def test_eggbox_symmetric_pose_is_accepted_by_adds_and_mssd(lmo_model_by_id, lmo
     # a small error on top of the symmetric pose is measured as such
     t_off = t_sym + np.array([2.0, 0, 0])
     assert mssd_error(R_sym, t_off, R_gt, t_gt, pts, syms) == pytest.approx(2.0, abs=1e-9)
+    # 2D projection: the plain error rejects the symmetric pose, the symmetric one accepts it
+    assert proj2d_error(R_sym, t_sym, R_gt, t_gt, pts, LINEMOD_K) > 5.0
+    assert proj2d_error(R_sym, t_sym, R_gt, t_gt, pts, LINEMOD_K, syms) < 1e-6

@@ -26,8 +26,9 @@ def _keypoints(oid):
     return np.concatenate([corners, 0.5 * corners[:4] + [3.0, -2.0, 1.0]])
 
 
-def make_dataset(root, n_frames=3, hidden=None):
-    """Scene 1 with ``n_frames`` black 320x240 images, objects 1 and 2 in each; ``hidden=(im, obj)`` has an empty visible box."""
+def make_dataset(root, n_frames=3, hidden=None, symmetries=None):
+    """Scene 1 with ``n_frames`` black 320x240 images, objects 1 and 2 in each; ``hidden=(im, obj)`` has an empty
+    visible box; ``symmetries={obj_id: [4x4, ...]}`` go into models_info as ``symmetries_discrete``."""
     mdir = root / "models"
     mdir.mkdir(parents=True)
     info = {}
@@ -35,6 +36,8 @@ def make_dataset(root, n_frames=3, hidden=None):
         box = trimesh.creation.box(extents=ext)
         box.export(mdir / f"obj_{oid:06d}.ply")
         info[str(oid)] = {"diameter": float(np.linalg.norm(ext))}
+        if symmetries and oid in symmetries:
+            info[str(oid)]["symmetries_discrete"] = [np.asarray(S, float).reshape(-1).tolist() for S in symmetries[oid]]
     (mdir / "models_info.json").write_text(json.dumps(info))
     sdir = root / "test" / "000001"
     (sdir / "rgb").mkdir(parents=True)
@@ -66,13 +69,13 @@ class BoxKeyedKPD:
     """Finds the GT pose of each box (the oracle passes the GT boxes) and returns the exact projected
     keypoints of that pose, optionally offset in 3D (``offset[obj_id]`` mm) or broken (``nan_obj``)."""
 
-    def __init__(self, root, poses, K, offset=None, nan_obj=None):
+    def __init__(self, root, poses, K, offset=None, nan_obj=None, sym=None):
         self.keypoints_3d = {o: _keypoints(o) for o in EXTENTS}
         self.by_box = {}
         for (_im, oid), (R, t) in poses.items():
             box = tuple(bbox_from_points(project_points(self.keypoints_3d[oid][:8], K, R, t)).round().astype(int))
             self.by_box[(oid, box)] = (R, t)
-        self.K, self.offset, self.nan_obj = K, offset or {}, nan_obj
+        self.K, self.offset, self.nan_obj, self.sym = K, offset or {}, nan_obj, sym or {}
         self.calls = 0
 
     def predict_keypoints(self, images, boxes, image_index, obj_ids):
@@ -80,6 +83,9 @@ class BoxKeyedKPD:
         kps = []
         for box, oid in zip(boxes.cpu().numpy().round().astype(int), obj_ids.tolist()):
             R, t = self.by_box[(oid, tuple(box))]
+            if oid in self.sym:  # the pose of GT composed with a symmetry S of the object: R S_R, R S_t + t
+                S = self.sym[oid]
+                R, t = R @ S[:3, :3], R @ S[:3, 3] + t
             uv = project_points(self.keypoints_3d[oid], self.K, R, t + np.asarray(self.offset.get(oid, [0, 0, 0.0])))
             kps.append(np.full_like(uv, np.nan) if oid == self.nan_obj else uv)
         n = len(kps)
@@ -130,6 +136,25 @@ def test_known_translation_error_gives_known_curves(tmp_path):
     assert np.asarray(o2["curves"]["add_s"])[1] == 1.0
     # mean curve = mean of the object curves
     np.testing.assert_allclose(m["mean"]["curves"]["add_s"], (curve + np.asarray(o2["curves"]["add_s"])) / 2)
+
+
+def test_symmetric_object_estimated_up_to_its_symmetry_is_correct_in_2d_too(tmp_path):
+    """Object 2 (an 80x40x30 box) is symmetric under 180 deg about z; the KPD answers GT composed with
+    that symmetry. ADD-S and the symmetric 2D projection error accept it; declared non-symmetric, both reject it."""
+    S = np.diag([-1.0, -1.0, 1.0, 1.0])
+    root, poses, K = make_dataset(tmp_path / "sym", symmetries={2: [S]})
+    m = evaluate(_pipeline(BoxKeyedKPD(root, poses, K, sym={2: S})), BopDataset(root), tmp_path / "a", oracle=True,
+                 n_overlays=0, progress=False)
+    o2 = m["per_object"]["2"]
+    assert o2["symmetric"] and o2["add_s_01d"] == 1.0 and o2["proj2d_5px"] == 1.0
+    assert m["bop19"]["ar_mspd"] == 1.0
+    assert "2D projection error minimised over its symmetries" in (tmp_path / "a" / "report.md").read_text()
+    root, poses, K = make_dataset(tmp_path / "plain")
+    m = evaluate(_pipeline(BoxKeyedKPD(root, poses, K, sym={2: S})), BopDataset(root), tmp_path / "b", oracle=True,
+                 n_overlays=0, progress=False)
+    o2 = m["per_object"]["2"]
+    assert not o2["symmetric"] and o2["add_s_01d"] == 0.0 and o2["proj2d_5px"] == 0.0
+    assert m["per_object"]["1"]["proj2d_5px"] == 1.0
 
 
 def test_undetected_and_failed_pnp_count_as_failures(tmp_path):

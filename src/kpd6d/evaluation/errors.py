@@ -7,7 +7,9 @@ Projection and transforms come from :mod:`kpd6d.geometry`.
 * ``add_error``: mean distance between corresponding transformed points (Hinterstoisser et al.).
 * ``adds_error``: mean distance from each GT-posed point to the closest estimate-posed point
   (ADD-S / ADI; KD-tree), as bop_toolkit's ``pose_error.adi``.
-* ``proj2d_error``: mean distance (px) between the projections of the points.
+* ``proj2d_error``: mean distance (px) between the projections of the points; with ``symmetries``
+  the minimum of that mean over the object's symmetry transforms (2D projection-S: an estimate that
+  equals GT up to a symmetry of the object has error 0, as under MSPD).
 * ``rotation_error`` (degrees, geodesic) and ``translation_error`` (mm).
 * ``mssd_error`` / ``mspd_error``: BOP19 maximum symmetry-aware surface / projection distance,
   ``min over symmetries S of max over points`` of the distance between the estimate-posed point
@@ -104,8 +106,15 @@ def adds_error(R_est, t_est, R_gt, t_gt, points) -> float:
     return float(dist.mean())
 
 
-def proj2d_error(R_est, t_est, R_gt, t_gt, points, K) -> float:
-    """2D projection error (px): mean over points of the distance between their two projections."""
+def proj2d_error(R_est, t_est, R_gt, t_gt, points, K, symmetries: Sequence | np.ndarray | None = None) -> float:
+    """2D projection error (px): mean over points of the distance between their two projections.
+
+    ``symmetries`` ((S, 4, 4) including the identity, :func:`symmetry_transforms`): the minimum over S
+    of that mean with GT composed with S (``min_S mean_x ||pi(R_est x + t_est) - pi(R_gt (S_R x + S_t) + t_gt)||``),
+    the symmetric form for objects evaluated with ADD-S; None: the identity only (the plain error).
+    """
+    if symmetries is not None:
+        return float(_sym_distances(R_est, t_est, R_gt, t_gt, points, symmetries, K=_K(K), reduce="mean").min())
     (R_e, t_e), (R_g, t_g), p, K = _pose(R_est, t_est), _pose(R_gt, t_gt), _points(points), _K(K)
     if _failed(R_e, t_e):
         return math.inf
@@ -207,8 +216,8 @@ def symmetry_transforms(info: Mapping[str, Any] | Any, continuous_step_deg: floa
     return np.stack([C @ D for D in discrete for C in continuous])
 
 
-def _sym_distances(R_est, t_est, R_gt, t_gt, points, symmetries, K=None) -> np.ndarray:
-    """Max over points of the est-vs-(GT o S) distance, for every symmetry S: (S,)."""
+def _sym_distances(R_est, t_est, R_gt, t_gt, points, symmetries, K=None, reduce: str = "max") -> np.ndarray:
+    """Max (``reduce="mean"``: mean) over points of the est-vs-(GT o S) distance, for every symmetry S: (S,)."""
     (R_e, t_e), (R_g, t_g), p = _pose(R_est, t_est), _pose(R_gt, t_gt), _points(points)
     S = as_symmetry_array(symmetries)
     if _failed(R_e, t_e):
@@ -219,7 +228,8 @@ def _sym_distances(R_est, t_est, R_gt, t_gt, points, symmetries, K=None) -> np.n
     for a in range(0, len(S), step):
         Rs, ts = compose_poses(R_g, t_g, S[a : a + step, :3, :3], S[a : a + step, :3, 3])  # (s,3,3), (s,3)
         gt = transform_points(p, Rs, ts) if K is None else project_points(p, K, Rs, ts)  # (s, N, d)
-        out[a : a + step] = np.linalg.norm(gt - est, axis=-1).max(axis=-1)
+        dist = np.linalg.norm(gt - est, axis=-1)
+        out[a : a + step] = dist.max(axis=-1) if reduce == "max" else dist.mean(axis=-1)
     return out
 
 

@@ -85,7 +85,7 @@ def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] 
     lines.append(f"| **mean** | | {m['n']} | **{_pct(m['add_s_01d'])}** | **{_pct(m['proj2d_5px'])}** | "
                  f"{_pct(m.get('proj2d_10px'))} | {_pct(m.get('proj2d_15px'))} | "
                  f"{_pct(m['auc_add_s'])} | {_pct(m.get('ar_mssd'))} | {_pct(m.get('ar_mspd'))} |")
-    lines += ["", "`*` symmetric object: ADD-S instead of ADD. Mean = mean over objects. Objects not detected or "
+    lines += ["", "`*` symmetric object: ADD-S instead of ADD, 2D projection error minimised over its symmetries. Mean = mean over objects. Objects not detected or "
               "with a failed PnP count as failures.", ""]
     bop = metrics.get("bop19") or {}
     if bop:

@@ -3,7 +3,8 @@
 
 Per evaluated GT instance (all instances of a frame, or with a targets file the ``inst_count`` most
 visible instances of each target object): ADD(-S) (ADD-S for symmetric objects) and the 2D
-projection error of the matched prediction; an instance with no prediction (not detected, or PnP
+projection error of the matched prediction (for symmetric objects its minimum over the object's
+symmetry transforms, as BOP's MSPD treats symmetries); an instance with no prediction (not detected, or PnP
 not ok) gets infinite errors, i.e. counts as a failure. Predictions are matched to instances of the
 same object greedily in score order, each taking the free instance with the lowest ADD(-S).
 
@@ -30,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd6d.evaluation.errors import add_error, adds_error, proj2d_error
+from kpd6d.evaluation.errors import add_error, adds_error, proj2d_error, symmetry_transforms
 from kpd6d.evaluation.recall import add_s_accuracy, auc, proj2d_accuracy, recall_at
 from kpd6d.evaluation.results_io import PoseResult, write_bop_results
 from kpd6d.io import atomic_write_image, atomic_write_json, atomic_write_text, read_json
@@ -76,8 +77,13 @@ def _eval_points(model) -> np.ndarray:
     return v
 
 
-def match_predictions(instances, preds: Sequence[dict], points: dict, symmetric: dict, K) -> list[tuple[float, float]]:
-    """(ADD(-S) mm, 2D projection px) for every instance; unmatched instances get (inf, inf)."""
+def match_predictions(instances, preds: Sequence[dict], points: dict, symmetric: dict, K,
+                      symmetries: dict | None = None) -> list[tuple[float, float]]:
+    """(ADD(-S) mm, 2D projection px) for every instance; unmatched instances get (inf, inf).
+
+    ``symmetries``: {obj_id: (S, 4, 4) transforms} (:func:`~kpd6d.evaluation.errors.symmetry_transforms`);
+    an object listed there gets the symmetric 2D projection error (minimum over its symmetries)."""
+    symmetries = symmetries or {}
     errs = [(np.inf, np.inf)] * len(instances)
     free = set(range(len(instances)))
     for p in sorted((p for p in preds if p.get("ok", True)), key=lambda p: -p["score"]):
@@ -88,7 +94,8 @@ def match_predictions(instances, preds: Sequence[dict], points: dict, symmetric:
         pts = points[p["obj_id"]]
         add = [f(p["R"], p["t"], instances[j].R, instances[j].t, pts) for j in cands]
         j = cands[int(np.argmin(add))]
-        errs[j] = (float(min(add)), proj2d_error(p["R"], p["t"], instances[j].R, instances[j].t, pts, K))
+        errs[j] = (float(min(add)), proj2d_error(p["R"], p["t"], instances[j].R, instances[j].t, pts, K,
+                                                 symmetries.get(p["obj_id"])))
         free.discard(j)
     return errs
 
@@ -216,6 +223,7 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     models = {m.obj_id: m for m in dataset.load_models(obj_ids)}
     points = {o: _eval_points(m) for o, m in models.items()}
     symmetric = {o: m.is_symmetric for o, m in models.items()}
+    symmetries = {o: symmetry_transforms(m) for o, m in models.items() if m.is_symmetric}
 
     pred_path = out_dir / "predictions.jsonl"
     _check_resumable(out_dir, run_info, oracle)
@@ -230,7 +238,7 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
         rec = done[(f.scene_id, f.im_id)]
         preds = [{**p, "R": np.asarray(p["R"], float), "t": np.asarray(p["t"], float)} for p in rec["preds"]]
         insts = eval_instances(f)
-        for inst, (add, proj) in zip(insts, match_predictions(insts, preds, points, symmetric, f.K)):
+        for inst, (add, proj) in zip(insts, match_predictions(insts, preds, points, symmetric, f.K, symmetries)):
             records.append({"scene_id": f.scene_id, "im_id": f.im_id, "obj_id": inst.obj_id, "add": add, "proj": proj})
         for p in preds:
             if p["ok"]:

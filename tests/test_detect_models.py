@@ -334,6 +334,9 @@ def test_checkpoint_round_trip_and_wrong_objects(tmp_path):
         torch.testing.assert_close(da.boxes, db.boxes)
         assert da.obj_ids.tolist() == db.obj_ids.tolist()
     assert load_detector(path, obj_ids=[7, 3], max_detections=2).max_detections == 2
+    assert load_detector(path, score_threshold=0.3, max_detections=None).score_threshold == 0.3  # None: the checkpoint's
+    with pytest.raises(DetectionInputError, match=r"cannot override \['input_size'\]; known: score_threshold"):
+        load_detector(path, input_size=[32, 32])
     with pytest.raises(DetectionInputError, match=r"trained for obj_ids \[3, 7, 11\].*\[1, 2\]"):
         load_detector(path, obj_ids=[1, 2, 3])
     torch.save({"state_dict": {}}, tmp_path / "other.pt")

@@ -353,8 +353,30 @@ def test_candidates_keep_the_pose_the_keypoints_verify():
     assert candidate_options(3, "det.pt") == {"candidates": 3, "one_per_object": False}
     with pytest.raises(ValueError, match="candidates must be an integer >= 1, got 0"):
         candidate_options(0, "det.pt")
+    # detector overrides ride along (not for the oracle); one_per_object=true contradicts several candidates
+    thr = {"score_threshold": 0.05}
+    assert candidate_options(1, "det.pt", ValueError, thr) == thr and candidate_options(3, "oracle", ValueError, thr) == {}
+    assert candidate_options(3, "det.pt", ValueError, thr) == {**thr, "candidates": 3, "one_per_object": False}
+    with pytest.raises(ValueError, match="one_per_object=true contradicts candidates=3"):
+        candidate_options(3, "det.pt", ValueError, {"one_per_object": True})
     with pytest.raises(PipelineInputError, match="candidates must be an integer >= 1"):
         PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt), candidates=0, device="cpu")
+
+
+def test_check_detector_overrides_names_the_key_and_value():
+    from kpd6d.config import ConfigError
+    from kpd6d.detection.detectors import check_detector_overrides
+
+    assert check_detector_overrides(None) == {} and check_detector_overrides({}) == {}
+    assert check_detector_overrides({"score_threshold": 0, "max_detections": None, "one_per_object": False}) == {
+        "score_threshold": 0.0, "one_per_object": False}
+    for value, msg in (({"score_threshold": 1.5}, r"evaluate.detector_overrides.score_threshold must be a number in \[0, 1\], got 1.5"),
+                       ({"max_detections": 0}, r"max_detections must be a positive integer, got 0"),
+                       ({"one_per_object": "yes"}, r"one_per_object must be true or false, got 'yes'"),
+                       ({"nms": 0.5}, r"cannot override \['nms'\]; known: score_threshold, max_detections, one_per_object"),
+                       (0.05, r"must be a mapping of score_threshold")):
+        with pytest.raises(ConfigError, match=msg):
+            check_detector_overrides(value, ConfigError, "evaluate.detector_overrides")
 
 
 def test_any_class_candidates_recover_a_misclassified_object():

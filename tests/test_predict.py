@@ -153,3 +153,8 @@ def test_cli_with_real_untrained_checkpoints(tmp_path, monkeypatch, capsys):
     np.testing.assert_array_equal(data["K"], K)
     assert (out / "poses.csv").is_file() and (out / "overlays" / "in.png").is_file()
     assert "poses in 1 frame(s)" in capsys.readouterr().out
+    # detector_overrides: the checkpoint's max_detections (3) replaced for this run
+    monkeypatch.setattr(sys, "argv", [*sys.argv[:-1], "detector_overrides.max_detections=1",
+                                      f"hydra.run.dir={tmp_path / 'run1'}"])
+    main()
+    assert len(json.loads((tmp_path / "run1" / "poses.json").read_text())["frames"][0]["poses"]) == 1

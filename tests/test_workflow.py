@@ -126,7 +126,7 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
         full = compose("run", overrides=["experiment=lmo", f"objects.models_dir={lmo_dir / 'models'}",
                                          f"evaluate.data_root={lmo_dir}"])
         cfg = compose("run", overrides=[*LMO_TINY, f"objects.models_dir={lmo_dir / 'models'}",
-                                        f"evaluate.data_root={lmo_dir}"])
+                                        f"evaluate.data_root={lmo_dir}", "evaluate.detector_overrides.score_threshold=0.05"])
     # the recipe itself: 8 objects, 50 SIFT keypoints (17 on the eggbox), table-top scenes, pretrained backbones
     assert full.objects.obj_ids == [1, 5, 6, 8, 9, 10, 11, 12] and full.designator.name == "sift"
     assert full.designator.num_keypoints == 50 and full.designator_per_object[10].symmetry_aware
@@ -146,6 +146,9 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     for f in ("eval/results.csv", "eval/report.md", "eval_oracle/results.csv", "eval_oracle/report.md"):
         assert (run / f).is_file(), f
     assert m["mean"]["n"] > 0 and m["oracle_boxes"]["mean"]["n"] > 0
+    # the detector's inference override reaches the evaluation with the own detector (not the oracle's)
+    assert json.loads((run / "eval" / "settings.json").read_text())["detector_overrides"] == {"score_threshold": 0.05}
+    assert "detector_overrides" not in json.loads((run / "eval_oracle" / "settings.json").read_text())
     assert 0.0 <= m["mean"]["ar_mspd"] <= 1.0
     # the detector's own AP on the real frames, per object, in metrics.json and the report
     assert set(m["detector"]["ap50_per_object"]) <= {1, 5} and m["detector"]["images"] == 2

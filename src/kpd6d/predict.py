@@ -314,6 +314,7 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
     """Build the pipeline from a composed ``conf/predict.yaml`` and run :func:`predict_inputs` into ``out_dir``."""
     from omegaconf import OmegaConf
 
+    from kpd6d.detection.detectors import check_detector_overrides
     from kpd6d.pipeline import PosePipeline
     from kpd6d.pnp.estimator import candidate_options
 
@@ -330,7 +331,8 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
                                     min_confidence=float(cfg.get("min_confidence", 0.0) or 0.0), device=cfg.device,
                                     box_scale=cfg_float(cfg, "box_scale", 1.0),
                                     depth_calibration=to_plain(cfg.get("depth_calibration", 1.0)),
-                                    **candidate_options(cfg.get("candidates", 1), det))
+                                    **candidate_options(cfg.get("candidates", 1), det, ValueError,
+                                                        check_detector_overrides(to_plain(cfg.get("detector_overrides")))))
     max_frames = cfg.get("max_frames")
     return predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=cfg_int(cfg, "batch_size"),
                           overlays=bool(cfg.overlays), progress=bool(cfg.progress),

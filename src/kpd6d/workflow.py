@@ -141,6 +141,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     from omegaconf import OmegaConf
 
     from kpd6d.data import BopDataset
+    from kpd6d.detection.detectors import check_detector_overrides
     from kpd6d.evaluation.runner import evaluate
     from kpd6d.pipeline import PosePipeline
     from kpd6d.pnp.estimator import candidate_options, candidates_record
@@ -156,13 +157,15 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     obj_ids = list(cfg.data.obj_ids) if cfg.data.obj_ids else None
     backend = str(cfg.get("backend") or "torch")
     kpd_ckpt = OmegaConf.select(cfg, "kpd_ckpt", default=None, throw_on_missing=backend == "torch")
+    det_over = check_detector_overrides(to_plain(cfg.get("detector_overrides")), ValueError)
+    det_opts = candidate_options(cfg.get("candidates", 1), cfg.detector_ckpt, ValueError, det_over)
     pipeline = PosePipeline.for_backend(backend, detector_ckpt=cfg.detector_ckpt, kpd_ckpt=kpd_ckpt,
                                         export_dir=cfg.get("export_dir"), pnp=pnp_cfg, top_l=top_l,
                                         device=cfg.device, obj_ids=obj_ids,
                                         refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
                                         box_scale=cfg_float(cfg, "box_scale", 1.0),
                                         depth_calibration=_depth_calibration(cfg.get("depth_calibration", 1.0)),
-                                        **candidate_options(cfg.get("candidates", 1), cfg.detector_ckpt, ValueError))
+                                        **det_opts)
     covered = sorted(int(o) for o in pipeline.kpd.keypoints_3d)
     wanted = obj_ids if obj_ids is not None else covered
     missing = sorted(set(wanted) - set(covered))
@@ -174,7 +177,8 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
             **({"candidates": candidates_record(pipeline.candidates, pipeline.candidates_any_class)}
                if pipeline.candidates > 1 or pipeline.candidates_any_class else {}),
-            "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device)}
+            "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device),
+            **({"detector_overrides": det_over} if det_over and str(cfg.detector_ckpt) != "oracle" else {})}
     if backend != "torch":
         info.update(backend=backend, export_dir=str(cfg.export_dir))
     metrics = evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle",
@@ -210,6 +214,7 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
     from omegaconf import OmegaConf
 
     from kpd6d.config import ConfigError
+    from kpd6d.detection.detectors import check_detector_overrides
     from kpd6d.pnp.estimator import candidates_record, check_candidates
 
     return OmegaConf.create({
@@ -220,6 +225,8 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
         "box_scale": cfg_float(cfg, "evaluate.box_scale", 1.0),
         "candidates": candidates_record(*check_candidates(to_plain(cfg.evaluate.get("candidates", 1)), ConfigError,
                                                           "evaluate.candidates")),
+        "detector_overrides": check_detector_overrides(to_plain(cfg.evaluate.get("detector_overrides")), ConfigError,
+                                                       "evaluate.detector_overrides"),
         "depth_calibration": _depth_calibration(cfg.evaluate.get("depth_calibration", 1.0)),
         "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress), **over,
     })

@@ -12,7 +12,7 @@ import functools
 import inspect
 import os
 import tempfile
-from collections.abc import Sequence
+from collections.abc import Mapping, Sequence
 from pathlib import Path
 from typing import Any
 
@@ -25,10 +25,14 @@ from kpd6d.detection.torchvision_detectors import TorchvisionDetector
 from kpd6d.io import to_plain
 from kpd6d.registry import DETECTORS
 
-__all__ = ["CHECKPOINT_KEY", "build_detector", "load_detector", "save_detector"]
+__all__ = ["CHECKPOINT_KEY", "INFERENCE_OVERRIDES", "build_detector", "check_detector_overrides", "load_detector",
+           "save_detector"]
 
 CHECKPOINT_KEY = "kpd6d_detector"
 FORMAT_VERSION = 1
+#: inference settings a loaded detector may be given instead of its checkpoint's (load_detector, the configs'
+#: ``detector_overrides``)
+INFERENCE_OVERRIDES = ("score_threshold", "max_detections", "one_per_object")
 #: constructor parameters that only say where initial weights come from
 _WEIGHT_PARAMS = ("backbone_weights_path", "weights_path", "backbone_pretrained")
 
@@ -116,6 +120,35 @@ def save_detector(detector: Detector, path: str | os.PathLike, extra: dict | Non
     return path
 
 
+def check_detector_overrides(value: Any, error: type[Exception] = ValueError,
+                             key: str = "detector_overrides") -> dict:
+    """A config's ``detector_overrides`` (None or a mapping of :data:`INFERENCE_OVERRIDES`) checked and
+    without its null entries (null: the checkpoint's value): ``score_threshold`` in [0, 1],
+    ``max_detections`` a positive integer, ``one_per_object`` a boolean. ``error`` is raised naming ``key``."""
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise error(f"{key} must be a mapping of {', '.join(INFERENCE_OVERRIDES)}, got {value!r}")
+    bad = sorted(str(k) for k in value if k not in INFERENCE_OVERRIDES)
+    if bad:
+        raise error(f"{key}: cannot override {bad}; known: {', '.join(INFERENCE_OVERRIDES)}")
+    out = {}
+    for k, v in value.items():
+        if v is None:
+            continue
+        if k == "score_threshold":
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= float(v) <= 1.0:
+                raise error(f"{key}.score_threshold must be a number in [0, 1], got {v!r}")
+            v = float(v)
+        elif k == "max_detections":
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise error(f"{key}.max_detections must be a positive integer, got {v!r}")
+        elif not isinstance(v, bool):
+            raise error(f"{key}.one_per_object must be true or false, got {v!r}")
+        out[k] = v
+    return out
+
+
 def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None, map_location: Any = "cpu",
                   **overrides: Any) -> Detector:
     """Rebuild a ready (eval-mode) detector from ``save_detector``'s file or a Lightning checkpoint.
@@ -142,10 +175,7 @@ def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None,
         if missing:
             raise DetectionInputError(f"detector checkpoint {str(path)!r} was trained for obj_ids {have}; "
                                       f"it cannot detect requested obj_ids {missing}")
-    allowed = {"score_threshold", "max_detections", "one_per_object"}
-    bad = sorted(set(overrides) - allowed)
-    if bad:
-        raise DetectionInputError(f"load_detector: cannot override {bad}; allowed: {sorted(allowed)}")
+    overrides = check_detector_overrides(overrides, DetectionInputError, "load_detector overrides")
     params = dict(rec["params"])
     for k in _WEIGHT_PARAMS:  # the weights come from the checkpoint: no file or package is consulted
         params.pop(k, None)

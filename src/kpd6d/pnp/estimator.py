@@ -123,14 +123,23 @@ def candidates_record(per_object: int, any_class: int) -> Any:
     return int(per_object) if any_class == 0 else {"per_object": int(per_object), "any_class": int(any_class)}
 
 
-def candidate_options(candidates: Any, detector_ckpt: Any, error: type[Exception] = ValueError) -> dict:
-    """The pipeline keywords of a config's ``candidates``: with more than one candidate per object the
-    detector must offer several boxes per object (``one_per_object=False``); with the oracle
-    (ground-truth boxes) nothing."""
+def candidate_options(candidates: Any, detector_ckpt: Any, error: type[Exception] = ValueError,
+                      overrides: Mapping[str, Any] | None = None) -> dict:
+    """The pipeline keywords of a config's ``candidates`` and its checked ``detector_overrides``
+    (``overrides``: the trained detector's inference settings, e.g. ``score_threshold``): with more than
+    one candidate per object the detector must offer several boxes per object (``one_per_object=False``;
+    an override asking for ``one_per_object=True`` then is an error); with the oracle (ground-truth
+    boxes) nothing."""
     n, m = check_candidates(candidates, error)
-    if (n == 1 and m == 0) or str(detector_ckpt) == "oracle":
+    if str(detector_ckpt) == "oracle":
         return {}
-    return {"candidates": candidates_record(n, m), "one_per_object": False}
+    over = dict(overrides or {})
+    if n == 1 and m == 0:
+        return over
+    if over.get("one_per_object") is True:
+        raise error(f"detector_overrides.one_per_object=true contradicts candidates={candidates_record(n, m)!r}: "
+                    "several candidates per object need several boxes per object")
+    return {**over, "candidates": candidates_record(n, m), "one_per_object": False}
 
 
 def top_candidates(dets: list[dict], n: int, any_class: int = 0, obj_ids: Any = ()) -> list[dict]:

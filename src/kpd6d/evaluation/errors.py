@@ -113,13 +113,7 @@ def proj2d_error(R_est, t_est, R_gt, t_gt, points, K, symmetries: Sequence | np.
     of that mean with GT composed with S (``min_S mean_x ||pi(R_est x + t_est) - pi(R_gt (S_R x + S_t) + t_gt)||``),
     the symmetric form for objects evaluated with ADD-S; None: the identity only (the plain error).
     """
-    if symmetries is not None:
-        return float(_sym_distances(R_est, t_est, R_gt, t_gt, points, symmetries, K=_K(K), reduce="mean").min())
-    (R_e, t_e), (R_g, t_g), p, K = _pose(R_est, t_est), _pose(R_gt, t_gt), _points(points), _K(K)
-    if _failed(R_e, t_e):
-        return math.inf
-    d = project_points(p, K, R_e, t_e) - project_points(p, K, R_g, t_g)
-    return float(np.linalg.norm(d, axis=-1).mean())
+    return float(_sym_distances(R_est, t_est, R_gt, t_gt, points, symmetries, K=_K(K), reduce="mean").min())
 
 
 def rotation_error(R_est, R_gt) -> float:

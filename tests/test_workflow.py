@@ -164,3 +164,70 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     assert json.loads((run / "calibration" / "metrics.json").read_text())["run"]["split"] == "val"
     for ev in ("eval", "eval_oracle"):
         assert json.loads((run / ev / "metrics.json").read_text())["run"]["depth_calibration"] == str(cal)
+
+
+@pytest.mark.slow
+def test_per_object_kpd_networks_train_evaluate_and_resume(tmp_path):
+    """kpd_networks=per_object: one KPD per object (each covering only its object), a manifest the
+    pipeline loads as one KPD, each box answered by its own object's network."""
+    import torch
+
+    from kpd6d.kpd.ensemble import KPDEnsemble, load_kpd, read_manifest
+    from kpd6d.kpd.module import KPDModule
+    from kpd6d.workflow import _split_max_time, run_experiment
+
+    run = tmp_path / "run"
+    cfg = _cfg(["objects.obj_ids=[1,2]", "kpd_networks=per_object", "detector_ckpt=oracle"])
+    m = run_experiment(cfg, run)
+    manifest = run / "kpd" / "networks.json"
+    members = read_manifest(manifest)
+    assert sorted(members) == [1, 2]
+    for o, ck in members.items():
+        assert ck == (run / "kpd" / f"obj_{o:06d}" / "checkpoints" / "best.ckpt").resolve()
+        assert KPDModule.load_checkpoint(ck).obj_ids == [o]
+    assert m["mean"]["n"] == 3 and json.loads((run / "eval" / "metrics.json").read_text())["run"]["kpd"] == str(manifest)
+
+    ens = load_kpd(manifest)
+    assert isinstance(ens, KPDEnsemble) and sorted(ens.keypoints_3d) == [1, 2]
+    g = torch.Generator().manual_seed(0)
+    images = torch.rand(2, 3, 120, 160, generator=g)
+    boxes = torch.tensor([[10.0, 20, 50, 40], [60, 30, 40, 50], [30, 10, 60, 60]])
+    idx, obj = torch.tensor([0, 1, 1]), torch.tensor([2, 1, 2])
+    kp, conf = ens.predict_keypoints(images, boxes, idx, obj)
+    for i in range(3):  # the same as the object's own network on that box alone (batching: ~1e-3 px)
+        own = KPDModule.load_checkpoint(members[int(obj[i])])
+        kp_i, c_i = own.predict_keypoints(images, boxes[i:i + 1], idx[i:i + 1], obj[i:i + 1])
+        torch.testing.assert_close(kp[i], kp_i[0].float(), atol=1e-2, rtol=0)
+        torch.testing.assert_close(conf[i], c_i[0].float(), atol=1e-3, rtol=0)
+    with pytest.raises(KeyError, match=r"do not cover object 3; they cover \[1, 2\]"):
+        ens.predict_keypoints(images, boxes[:1], idx[:1], torch.tensor([3]))
+
+    # a rerun reuses the networks; the time budget is split between the objects
+    stamp = manifest.stat().st_mtime_ns
+    run_experiment(cfg, run)
+    assert manifest.stat().st_mtime_ns == stamp
+    assert _split_max_time("00:01:00:00", 8) == "00:00:07:30" and _split_max_time(None, 8) is None
+
+
+def test_kpd_networks_manifest_errors(tmp_path):
+    from kpd6d.config import ConfigError
+    from kpd6d.kpd.ensemble import load_kpd, read_manifest, write_manifest
+    from kpd6d.workflow import train_kpd_stage
+
+    bad = tmp_path / "networks.json"
+    bad.write_text("{not json")
+    with pytest.raises(ValueError, match="networks.json.*not valid JSON"):
+        read_manifest(bad)
+    bad.write_text(json.dumps({"members": {"1": "a.ckpt"}}))
+    with pytest.raises(ValueError, match="not a KPD networks manifest"):
+        read_manifest(bad)
+    write_manifest(bad, {1: tmp_path / "obj_000001" / "best.ckpt"})
+    assert json.loads(bad.read_text())["members"] == {"1": "obj_000001/best.ckpt"}
+    with pytest.raises(FileNotFoundError, match=r"networks.json', object 1: KPD checkpoint .*obj_000001/best.ckpt"):
+        load_kpd(bad)
+    from kpd6d.deploy.export import export_models
+
+    with pytest.raises(ValueError, match="is a networks manifest .*export takes one KPD checkpoint"):
+        export_models(bad, "oracle", tmp_path / "export")
+    with pytest.raises(ConfigError, match="kpd_networks='each' unknown; known: shared, per_object"):
+        train_kpd_stage(_cfg(["kpd_networks=each"]), tmp_path / "kpd", tmp_path, tmp_path / "k.json")

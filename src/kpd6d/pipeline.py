@@ -89,11 +89,12 @@ class PosePipeline(PoseEstimatorBase):
                          obj_ids: Sequence[int] | None = None, refine_boxes: int = 0, min_confidence: float = 0.0,
                          residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
                          depth_calibration: Any = 1.0, candidates: Any = 1, **detector_overrides: Any) -> PosePipeline:
-        """Load a detector checkpoint (or ``"oracle"``) and a KPD checkpoint."""
-        from kpd6d.kpd.module import KPDModule
+        """Load a detector checkpoint (or ``"oracle"``) and a KPD checkpoint (or a networks manifest
+        of one KPD per object, :mod:`kpd6d.kpd.ensemble`)."""
+        from kpd6d.kpd.ensemble import load_kpd
 
         device = torch.device(device) if device is not None else default_device()
-        kpd_module = KPDModule.load_checkpoint(kpd)
+        kpd_module = load_kpd(kpd)
         if str(detector) == "oracle":
             from kpd6d.registry import DETECTORS
 

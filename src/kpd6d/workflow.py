@@ -5,7 +5,8 @@ Steps, each skipped when its output already exists (so an interrupted run resume
 1. designate keypoints for every object (``keypoints.json``, via :mod:`kpd6d.keypoints.designate`);
 2. generate train / val / test render-and-paste data (``data/``, via :func:`kpd6d.synth.generate_dataset`);
 3. train the detector (``detector/detector.pt``) unless ``detector_ckpt`` is given or ``"oracle"``;
-4. train the KPD (``kpd/checkpoints/best.ckpt``) unless ``kpd_ckpt`` is given;
+4. train the KPD (``kpd/checkpoints/best.ckpt``; with ``kpd_networks=per_object`` one network per
+   object in ``kpd/obj_XXXXXX/`` and the manifest ``kpd/networks.json``) unless ``kpd_ckpt`` is given;
 5. evaluate on the test split (``eval/``: metrics.json, results.csv, report.md, plots, overlays;
    :func:`run_evaluation`, also the work of ``kpd6d-evaluate``).
 
@@ -99,19 +100,67 @@ def train_detector_stage(cfg, run_dir: Path, root: Path) -> str:
     return str(train_detector(_stage_cfg(cfg, "detector_stage", run_dir, root, detector=det_cfg)))
 
 
-def train_kpd_stage(cfg, run_dir: Path, root: Path, keypoints_file: Path) -> str:
+KPD_NETWORKS = ("shared", "per_object")
+
+
+def _kpd_networks(cfg) -> str:
+    value = str(cfg.get("kpd_networks", "shared") or "shared")
+    if value not in KPD_NETWORKS:
+        from kpd6d.config import ConfigError
+
+        raise ConfigError(f"kpd_networks={value!r} unknown; known: {', '.join(KPD_NETWORKS)}")
+    return value
+
+
+def _train_one_kpd(cfg, run_dir: Path, root: Path, keypoints_file: Path, obj_ids, max_time=None,
+                   what: str = "the KPD") -> str:
     best = run_dir / "checkpoints" / "best.ckpt"
     if (run_dir / "metrics.json").is_file() and best.is_file():
         _log(f"KPD exists: {best}")
         return str(best)
     from kpd6d.kpd.train import train_kpd
 
-    _log("training the KPD")
+    _log(f"training {what}")
     kcfg = _stage_cfg(cfg, "kpd_stage", run_dir, root)
     kcfg.stage.kpd.keypoints = str(keypoints_file)
-    kcfg.stage.kpd.obj_ids = to_plain(cfg.objects.obj_ids)
+    kcfg.stage.kpd.obj_ids = to_plain(obj_ids)
+    if max_time is not None:
+        kcfg.stage.kpd.trainer.max_time = max_time
     train_kpd(kcfg)
     return str(best if best.is_file() else run_dir / "checkpoints" / "last.ckpt")
+
+
+def _split_max_time(value, n: int) -> str | None:
+    """Lightning ``max_time`` divided by ``n``, as ``DD:HH:MM:SS`` (whole seconds, at least 1); None
+    stays None (an epoch budget applies to each network as it is)."""
+    from kpd6d.schedules import parse_max_time
+
+    total = parse_max_time(to_plain(value))
+    if total is None:
+        return None
+    s = max(1, int(total // n))
+    return f"{s // 86400:02d}:{s // 3600 % 24:02d}:{s // 60 % 60:02d}:{s % 60:02d}"
+
+
+def train_kpd_stage(cfg, run_dir: Path, root: Path, keypoints_file: Path) -> str:
+    """The run's KPD: one network for all objects (``kpd_networks=shared``; returns its checkpoint) or
+    one per object (``per_object``: each trained on its object's crops for ``max_time`` / objects, or
+    for the epoch budget when there is no ``max_time``, in
+    ``run_dir/obj_XXXXXX``; returns the ``networks.json`` manifest, :mod:`kpd6d.kpd.ensemble`)."""
+    obj_ids = [int(o) for o in to_plain(cfg.objects.obj_ids)]
+    if _kpd_networks(cfg) == "shared":
+        return _train_one_kpd(cfg, run_dir, root, keypoints_file, obj_ids)
+    from kpd6d.kpd.ensemble import write_manifest
+
+    manifest = run_dir / "networks.json"
+    if manifest.is_file():
+        _log(f"KPD networks exist: {manifest}")
+        return str(manifest)
+    budget = _split_max_time(cfg.kpd_stage.kpd.trainer.get("max_time"), len(obj_ids))
+    members = {o: _train_one_kpd(cfg, run_dir / f"obj_{o:06d}", root, keypoints_file, [o], budget,
+                                 what=f"the KPD of object {o} ({i + 1}/{len(obj_ids)}, max_time {budget})")
+               for i, o in enumerate(obj_ids)}
+    return str(write_manifest(manifest, members))
 
 
 def evaluate_detector_on(det_ckpt, root: Path, split: str, obj_ids, max_frames=None) -> dict:

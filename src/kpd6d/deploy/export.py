@@ -156,8 +156,12 @@ def export_models(kpd_ckpt: str | os.PathLike, detector_ckpt: str | os.PathLike 
 
     ``check``: run ``onnx.checker`` on the written graphs.
     """
+    from kpd6d.kpd.ensemble import is_manifest
     from kpd6d.kpd.module import KPDModule
 
+    if is_manifest(kpd_ckpt):
+        raise ValueError(f"kpd_ckpt={str(kpd_ckpt)!r} is a networks manifest (one KPD per object); export takes one "
+                         "KPD checkpoint (a shared network, kpd_networks=shared)")
     try:
         import onnx  # torch.onnx.export needs it
     except ImportError as exc:

@@ -1,0 +1,141 @@
+"""One KPD network per object behind the one-network interface (``kpd6d-run kpd_networks=per_object``).
+
+:class:`KPDEnsemble` holds a :class:`~kpd6d.kpd.module.KPDModule` per object and answers the KPD
+contract the pipelines use (``predict_keypoints``, ``keypoints_3d``, ``surface_points``) by sending
+each box to its object's network. Every member must give the same number of keypoints (the pipeline
+solves PnP over one (N, k) batch).
+
+On disk an ensemble is a manifest (``networks.json``, written by :func:`write_manifest`)::
+
+    {"format": "kpd6d-kpd-networks", "version": 1,
+     "members": {"1": "obj_000001/checkpoints/best.ckpt", ...}}   # paths relative to the manifest
+
+:func:`load_kpd` loads either a KPD checkpoint or such a manifest: every place that takes
+``kpd_ckpt`` takes both.
+"""
+
+from __future__ import annotations
+
+import json
+import os
+from collections.abc import Mapping
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+import torch
+
+__all__ = ["MANIFEST_FORMAT", "KPDEnsemble", "is_manifest", "load_kpd", "read_manifest", "write_manifest"]
+
+MANIFEST_FORMAT = "kpd6d-kpd-networks"
+
+
+class KPDEnsemble(torch.nn.Module):
+    """``members``: obj_id -> a KPD module that covers that object (it may cover more; only its
+    object's boxes are sent to it)."""
+
+    def __init__(self, members: Mapping[int, Any]) -> None:
+        super().__init__()
+        if not members:
+            raise ValueError("KPDEnsemble needs at least one member network")
+        ks = {}
+        for oid, m in members.items():
+            if int(oid) not in {int(o) for o in m.keypoints_3d}:
+                raise ValueError(f"KPDEnsemble: the network given for object {oid} does not cover it "
+                                 f"(it covers {sorted(int(o) for o in m.keypoints_3d)})")
+            ks[int(oid)] = int(np.asarray(m.keypoints_3d[int(oid)]).reshape(-1, 3).shape[0])
+        if len(set(ks.values())) > 1:
+            raise ValueError(f"KPDEnsemble: every object needs the same number of keypoints (the pipeline solves "
+                             f"PnP over one (N, k) batch); got {ks}")
+        self.obj_ids = sorted(ks)
+        self.num_keypoints = next(iter(ks.values()))
+        self.members = torch.nn.ModuleDict({str(o): members[o] for o in self.obj_ids})
+
+    @property
+    def device(self) -> torch.device:
+        return next(iter(self.members.values())).device
+
+    @property
+    def keypoints_3d(self) -> dict[int, np.ndarray]:
+        """obj_id -> (k, 3) keypoints (model frame, mm), each from its object's network."""
+        return {o: np.asarray(self.member(o).keypoints_3d[o], dtype=np.float64) for o in self.obj_ids}
+
+    def member(self, obj_id: int):
+        key = str(int(obj_id))
+        if key not in self.members:
+            raise KeyError(f"KPD networks do not cover object {int(obj_id)}; they cover {self.obj_ids}")
+        return self.members[key]
+
+    def surface_points(self, obj_id: int) -> np.ndarray:
+        return self.member(obj_id).surface_points(int(obj_id))
+
+    @torch.no_grad()
+    def predict_keypoints(self, images: torch.Tensor, boxes, image_index, obj_ids) -> tuple[torch.Tensor, torch.Tensor]:
+        """As :meth:`kpd6d.kpd.module.KPDModule.predict_keypoints`: (N, k, 2) image px and (N, k)
+        confidences, each box's from its object's network, in the order of the boxes."""
+        obj = torch.as_tensor(obj_ids, dtype=torch.long).reshape(-1)
+        boxes = torch.as_tensor(boxes, dtype=torch.float32).reshape(-1, 4)
+        idx = torch.as_tensor(image_index, dtype=torch.long).reshape(-1)
+        n = int(obj.numel())
+        kp = torch.zeros((n, self.num_keypoints, 2), dtype=torch.float32, device=images.device)
+        conf = torch.zeros((n, self.num_keypoints), dtype=torch.float32, device=images.device)
+        for oid in torch.unique(obj.cpu()).tolist():
+            m = obj == oid
+            p, c = self.member(oid).predict_keypoints(images, boxes[m], idx[m], obj[m])
+            kp[m.to(kp.device)] = torch.as_tensor(p).float().to(kp.device)
+            conf[m.to(conf.device)] = torch.as_tensor(c).float().to(conf.device)
+        return kp, conf
+
+
+def is_manifest(path: str | os.PathLike) -> bool:
+    """True when ``path`` names a KPD networks manifest (a ``.json`` file), not a checkpoint."""
+    return str(path).lower().endswith(".json")
+
+
+def write_manifest(path: str | os.PathLike, members: Mapping[int, str | os.PathLike]) -> Path:
+    """Write ``networks.json`` atomically; member paths are stored relative to its folder."""
+    from kpd6d.io import atomic_write_text
+
+    path = Path(path)
+    rel = {str(int(o)): os.path.relpath(Path(p), path.parent) for o, p in sorted(members.items())}
+    atomic_write_text(path, json.dumps({"format": MANIFEST_FORMAT, "version": 1, "members": rel}, indent=1))
+    return path
+
+
+def read_manifest(path: str | os.PathLike) -> dict[int, Path]:
+    """obj_id -> checkpoint path of a manifest; errors name the file and what is wrong."""
+    p = Path(path)
+    if not p.is_file():
+        raise FileNotFoundError(f"KPD networks manifest {str(p)!r} does not exist")
+    try:
+        doc = json.loads(p.read_text())
+    except json.JSONDecodeError as exc:
+        raise ValueError(f"KPD networks manifest {str(p)!r} is not valid JSON: {exc}") from exc
+    if not isinstance(doc, dict) or doc.get("format") != MANIFEST_FORMAT or not isinstance(doc.get("members"), dict) \
+            or not doc["members"]:
+        raise ValueError(f"{str(p)!r} is not a KPD networks manifest (expected {{\"format\": \"{MANIFEST_FORMAT}\", "
+                         f"\"members\": {{obj_id: checkpoint}}}}, one or more members)")
+    out = {}
+    for key, rel in doc["members"].items():
+        try:
+            oid = int(key)
+        except ValueError:
+            raise ValueError(f"KPD networks manifest {str(p)!r}: member key {key!r} is not an object id") from None
+        out[oid] = (p.parent / str(rel)).resolve()
+    return out
+
+
+def load_kpd(path: str | os.PathLike, map_location: Any = "cpu"):
+    """A KPD checkpoint (:class:`~kpd6d.kpd.module.KPDModule`) or a networks manifest
+    (:class:`KPDEnsemble`), ready for inference."""
+    from kpd6d.kpd.module import KPDModule
+
+    if not is_manifest(path):
+        return KPDModule.load_checkpoint(path, map_location=map_location)
+    members = {}
+    for o, ck in read_manifest(path).items():
+        try:
+            members[o] = KPDModule.load_checkpoint(ck, map_location=map_location)
+        except (FileNotFoundError, ValueError) as exc:
+            raise type(exc)(f"KPD networks manifest {str(path)!r}, object {o}: {exc}") from exc
+    return KPDEnsemble(members).eval()

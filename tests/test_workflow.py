@@ -216,7 +216,7 @@ def test_kpd_networks_manifest_errors(tmp_path):
 
     bad = tmp_path / "networks.json"
     bad.write_text("{not json")
-    with pytest.raises(ValueError, match="networks.json.*not valid JSON"):
+    with pytest.raises(ValueError, match=r"networks\.json.*not valid JSON"):
         read_manifest(bad)
     bad.write_text(json.dumps({"members": {"1": "a.ckpt"}}))
     with pytest.raises(ValueError, match="not a KPD networks manifest"):
@@ -227,7 +227,7 @@ def test_kpd_networks_manifest_errors(tmp_path):
         load_kpd(bad)
     from kpd6d.deploy.export import export_models
 
-    with pytest.raises(ValueError, match="is a networks manifest .*export takes one KPD checkpoint"):
+    with pytest.raises(ValueError, match=r"is a networks manifest .*export takes one KPD checkpoint"):
         export_models(bad, "oracle", tmp_path / "export")
     with pytest.raises(ConfigError, match="kpd_networks='each' unknown; known: shared, per_object"):
         train_kpd_stage(_cfg(["kpd_networks=each"]), tmp_path / "kpd", tmp_path, tmp_path / "k.json")

@@ -108,3 +108,23 @@ def test_keypoint_error_px_maps_crop_keypoints_back():
     err, back = keypoint_error_px(crop + torch.tensor([6.0, 8.0], dtype=torch.float64), A, img)
     assert err.item() == pytest.approx(5.0)  # (6, 8) crop px = (3, 4) image px
     np.testing.assert_allclose(back.numpy(), (img + torch.tensor([3.0, 4.0], dtype=torch.float64)).numpy())
+
+
+def test_pose_metrics_symmetric_2d_error_takes_the_symmetry_into_account():
+    """The validation's 2D accuracy for a symmetric object: a pose equal to GT up to its 180° symmetry
+    is a hit with its symmetry transforms and a miss without them (the evaluation's rule)."""
+    from kpd6d.evaluation.errors import symmetry_transforms
+
+    rng = np.random.default_rng(2)
+    half = rng.uniform(-40, 40, (25, 3))
+    Rz = np.diag([-1.0, -1.0, 1.0])  # 180° about the model z axis; the point set has that symmetry
+    pts = [np.concatenate([half, half @ Rz.T])]
+    R = random_rotation(rng)[None]
+    t = np.array([[10.0, -5.0, 700.0]])
+    poses = BatchPoseEstimate(R=R @ Rz, t=t.copy(), ok=np.array([True]), inliers=np.ones((1, 50), bool), reasons=[""])
+    S = symmetry_transforms({"symmetries_discrete": [np.block([[Rz, np.zeros((3, 1))], [np.zeros((1, 3)), 1.0]]).ravel()]})
+    K = LINEMOD_K[None]
+    plain = pose_metrics(poses, R, t, K, pts, [True], [100.0])
+    sym = pose_metrics(poses, R, t, K, pts, [True], [100.0], [S])
+    assert plain["proj2d_acc_5px"] == 0.0 and sym["proj2d_acc_5px"] == 1.0
+    assert plain["add_acc_0.1d"] == sym["add_acc_0.1d"] == 1.0  # ADD-S accepts it either way

@@ -192,3 +192,24 @@ def test_bf16_autocast_forward_loss_and_decode():
     loss.backward()
     kp, conf = module.decode(pred)
     assert kp.dtype == torch.float32 and torch.isfinite(kp).all() and conf.shape == (2, K_PTS)
+
+
+def test_validation_2d_error_uses_the_checkpoints_symmetries():
+    """Object 7 is symmetric with a 180° symmetry about z in its hparams: keypoints of GT composed with
+    that symmetry are a 2D hit in validation (the evaluation's symmetric 2D error), object 3's are not."""
+    from kpd6d.geometry import project_points
+
+    Sz = np.diag([-1.0, -1.0, 1.0, 1.0])
+    sym = [{"symmetries_discrete": [], "symmetries_continuous": []},
+           {"symmetries_discrete": [Sz.ravel().tolist()], "symmetries_continuous": []}]
+    module = _module(symmetries=sym)
+    assert module._symmetry_transforms(0) is None and module._symmetry_transforms(1).shape == (2, 4, 4)
+    rng = np.random.default_rng(5)
+    R = np.stack([random_rotation(rng) for _ in range(2)])
+    t = np.array([[5.0, -3.0, 900.0], [0.0, 8.0, 900.0]])
+    obj = torch.tensor([3, 7])
+    kp = np.stack([project_points(np.asarray(module.hparams.keypoints_3d[i]), LINEMOD_K, R[i] @ Sz[:3, :3], t[i])
+                   for i in range(2)])
+    m = module.pose_metrics(torch.from_numpy(kp), torch.ones(2, K_PTS), obj, torch.from_numpy(np.stack([LINEMOD_K] * 2)),
+                            torch.from_numpy(R), torch.from_numpy(t))
+    assert m["proj2d_acc_5px"] == 0.5  # object 7 a hit (symmetric), object 3 a miss (rotated 180°)

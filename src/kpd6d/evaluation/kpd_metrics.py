@@ -31,12 +31,14 @@ def keypoint_error_px(kp_crop, affine, keypoints_image):
 
 
 def pose_metrics(poses, R_gt, t_gt, K, surface_points: Sequence, symmetric: Sequence[bool],
-                 diameters: Sequence[float]) -> dict[str, float]:
+                 diameters: Sequence[float], symmetries: Sequence | None = None) -> dict[str, float]:
     """``proj2d_acc_5px``, ``add_acc_0.1d`` and ``pnp_fail_rate`` over N instances.
 
     ``poses`` is indexable per instance (``.ok``, ``.R``, ``.t``: a ``BatchPoseEstimate``);
     ``R_gt`` (N, 3, 3), ``t_gt`` (N, 3) mm, ``K`` (N, 3, 3) numpy; ``surface_points`` (N of (P, 3) mm),
-    ``symmetric`` and ``diameters`` (mm) per instance (ADD-S for symmetric objects, else ADD).
+    ``symmetric`` and ``diameters`` (mm) per instance (ADD-S for symmetric objects, else ADD);
+    ``symmetries``: per instance (S, 4, 4) symmetry transforms or None — the 2D projection error is then
+    the minimum over them (as the evaluation's, :func:`kpd6d.evaluation.errors.proj2d_error`).
     """
     hit2d, hitadd, fail = [], [], []
     for j in range(len(poses)):
@@ -48,7 +50,7 @@ def pose_metrics(poses, R_gt, t_gt, K, surface_points: Sequence, symmetric: Sequ
             continue
         pts = np.asarray(surface_points[j], dtype=np.float64)
         Re, te = np.asarray(est.R, dtype=np.float64), np.asarray(est.t, dtype=np.float64)
-        e2d = proj2d_error(Re, te, R_gt[j], t_gt[j], pts, K[j])
+        e2d = proj2d_error(Re, te, R_gt[j], t_gt[j], pts, K[j], symmetries[j] if symmetries is not None else None)
         ead = (adds_error if symmetric[j] else add_error)(Re, te, R_gt[j], t_gt[j], pts)
         hit2d.append(float(e2d < 5.0))
         hitadd.append(float(ead < 0.1 * diameters[j]))

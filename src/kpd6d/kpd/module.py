@@ -238,7 +238,8 @@ class KPDModule(pl.LightningModule):
 
     def pose_metrics(self, kp_img, conf, obj_ids, K, R_gt, t_gt) -> dict[str, float]:
         """top-l + PnP per instance (the checkpoint's ``pnp`` and ``top_l``) →
-        :func:`kpd6d.evaluation.kpd_metrics.pose_metrics`: mean 2-D projection accuracy at 5 px,
+        :func:`kpd6d.evaluation.kpd_metrics.pose_metrics`: mean 2-D projection accuracy at 5 px (for
+        symmetric objects the minimum over their symmetry transforms, as the evaluation's),
         ADD(-S) accuracy at 0.1 d, and the PnP failure rate (a failed PnP counts as a miss)."""
         from kpd6d.evaluation.kpd_metrics import pose_metrics
         from kpd6d.pnp.top_l import solve_top_l
@@ -253,7 +254,23 @@ class KPDModule(pl.LightningModule):
         Kn, Rg, tg = (x.detach().cpu().double().numpy() for x in (K, R_gt, t_gt))
         poses = solve_top_l(self._pnp, kp3, kp_img, Kn, conf.float(), l=hp.top_l)
         return pose_metrics(poses, Rg, tg, Kn, [self.surface_points(hp.obj_ids[i]) for i in idx],
-                            [hp.symmetric[i] for i in idx], [hp.diameters[i] for i in idx])
+                            [hp.symmetric[i] for i in idx], [hp.diameters[i] for i in idx],
+                            [self._symmetry_transforms(i) for i in idx])
+
+    def _symmetry_transforms(self, i: int):
+        """(S, 4, 4) symmetry transforms of the checkpoint's i-th object for the symmetric 2D error
+        (None: not symmetric, or a checkpoint without its symmetries)."""
+        cache = self.__dict__.setdefault("_sym_cache", {})
+        if i not in cache:
+            hp = self.hparams
+            sym = hp.symmetries[i] if hp.get("symmetries") is not None else None
+            if not hp.symmetric[i] or not sym:
+                cache[i] = None
+            else:
+                from kpd6d.evaluation.errors import symmetry_transforms
+
+                cache[i] = symmetry_transforms(sym)
+        return cache[i]
 
     def configure_optimizers(self):
         from kpd6d.training import configure_optimization

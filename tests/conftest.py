@@ -11,6 +11,24 @@ import pytest
 ROOT = Path(__file__).resolve().parents[1]
 
 
+def _absl_logs_to_the_real_stderr() -> None:
+    """absl (pulled in by the ONNX / OpenVINO stack) gives its log handler the sys.stderr of the moment
+    it is imported: inside a test, pytest's capture stream. Its ``close()`` closes any stream that is not
+    the *current* sys.stderr, and a later Hydra CLI test reconfigures logging, which closes every handler:
+    pytest's capture stream then dies ("lost sys.stderr", depending on how xdist orders the tests).
+    Importing it here and pointing it at the real stderr (never closed) removes the order dependence."""
+    import sys
+
+    try:
+        from absl import logging as absl_logging
+    except ImportError:
+        return
+    absl_logging.get_absl_handler().python_handler.stream = sys.__stderr__
+
+
+_absl_logs_to_the_real_stderr()
+
+
 def shared_data_dir() -> Path:
     env = os.environ.get("KPD6D_SHARED_DATA")
     return Path(env) if env else ROOT.parent / "shared" / "data"

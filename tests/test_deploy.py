@@ -234,12 +234,13 @@ def test_pipeline_from_export_matches_torch_end_to_end(models, backend):
     args = ([B[1] for B in boxes], [B[2] for B in boxes], [B[0] for B in boxes])
     assert _compare_poses(want, rt.predict_boxes(images, K, *args)) >= 1
     assert _compare_poses(want, torch_pipe.predict_boxes(images, K, *args)) >= 1
-    # crops on grown boxes (box_scale), refined on depth-calibrated poses: the same in both
+    # crops on grown boxes (box_scale) with 3 test-time crops each (crop_tta), refined on depth-calibrated
+    # poses: the same in both
     grown = [PosePipeline(DETECTORS.build("oracle"), models["kpd"], device="cpu", refine_boxes=1, box_scale=1.2,
-                          depth_calibration={"default": 0.9}, **kw),
+                          depth_calibration={"default": 0.9}, crop_tta=3, **kw),
              PosePipeline.from_export(models["export"], backend=backend, detector="oracle", refine_boxes=1,
-                                      box_scale=1.2, depth_calibration={"default": 0.9}, **kw)]
-    assert grown[1].box_scale == 1.2
+                                      box_scale=1.2, depth_calibration={"default": 0.9}, crop_tta=3, **kw)]
+    assert grown[1].box_scale == 1.2 and grown[1].crop_tta == 3
     # the exported runtime takes the depth calibration through the shared core
     assert grown[1].depth_calibration_default == 0.9 and grown[1].depth_factors([1, 2]).tolist() == [0.9, 0.9]
     # (keypoints, confidences and boxes: the poses of this untrained KPD are so ill-conditioned that

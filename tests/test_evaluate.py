@@ -223,11 +223,12 @@ def test_kpd6d_evaluate_cli_with_a_real_untrained_kpd(tmp_path, monkeypatch, cap
     out = tmp_path / "run"
     monkeypatch.setattr(sys, "argv", ["kpd6d-evaluate", f"data.root={root}", f"kpd_ckpt={ckpt}", "detector_ckpt=oracle",
                                       "device=cpu", "progress=false", "overlays=1", "pnp=epnp_ransac", "select.top_l=20",
-                                      f"hydra.run.dir={out}"])
+                                      "crop_tta=3", f"hydra.run.dir={out}"])
     main()
     m = json.loads((out / "metrics.json").read_text())
     assert m["mean"]["n"] == 4  # every instance evaluated, however bad the untrained KPD is
     assert m["run"]["pnp"]["name"] == "epnp_ransac" and m["run"]["top_l"] == 20 and m["run"]["device"] == "cpu"
+    assert m["run"]["crop_tta"] == 3 and "- crop_tta: `3`" in (out / "report.md").read_text()
     for name in ("results.csv", "report.md", "accuracy_vs_px.png", "accuracy_vs_add.png", "overlays/000001_000000.png"):
         assert (out / name).is_file(), name
     assert "wrote" in capsys.readouterr().out

@@ -427,3 +427,72 @@ def test_any_class_candidates_recover_a_misclassified_object():
         check_candidates({"any_class": -1})
     with pytest.raises(ValueError, match=r"evaluate.candidates: unknown key\(s\) \['top'\]; known"):
         check_candidates({"top": 2}, key="evaluate.candidates")
+
+
+def test_tta_boxes_and_their_median_against_a_direct_computation():
+    from kpd6d.pnp.estimator import CROP_TTA_JITTER, combine_tta, tta_boxes
+
+    boxes = np.array([[100.0, 50.0, 40.0, 80.0], [10.0, 20.0, 30.0, 30.0]])
+    got = tta_boxes(boxes, 9)
+    assert got.shape == (18, 4)
+    for j, (f, dx, dy) in enumerate(CROP_TTA_JITTER):
+        for i, (x, y, w, h) in enumerate(boxes):
+            cx, cy = x + w / 2 + dx * w, y + h / 2 + dy * h
+            np.testing.assert_allclose(got[j * 2 + i], [cx - f * w / 2, cy - f * h / 2, f * w, f * h], atol=1e-12)
+    np.testing.assert_array_equal(tta_boxes(boxes, 1), boxes)  # the first crop is the box itself
+    rng = np.random.default_rng(3)
+    kp, conf = rng.normal(size=(3 * 2, 4, 2)), rng.uniform(size=(3 * 2, 4))
+    mk, mc = combine_tta(kp, conf, 3)
+    for i in range(2):
+        for k in range(4):
+            for c in range(2):
+                assert mk[i, k, c] == sorted(kp[[i, 2 + i, 4 + i], k, c])[1]  # middle of the three crops
+            assert mc[i, k] == pytest.approx(conf[[i, 2 + i, 4 + i], k].mean())
+
+
+class CropOffsetKPD(FakeKPD):
+    """Exact GT keypoints, except that the j-th of ``n_crops`` blocks of boxes in a call (crop j of
+    crop_tta) is moved by ``offsets[j]`` px: only the median over the crops gets the GT back."""
+
+    def __init__(self, keypoints_3d, gt, offsets, n_crops):
+        super().__init__(keypoints_3d, gt)
+        self.offsets, self.n_crops, self.seen = offsets, n_crops, []
+
+    def predict_keypoints(self, images, boxes, image_index, obj_ids):
+        self.seen.append(boxes.cpu().numpy().astype(np.float64))
+        n = len(boxes)
+        block = n // self.n_crops
+        kps = []
+        for r, (b, oid) in enumerate(zip(image_index.tolist(), obj_ids.tolist())):
+            R, t, K = self.gt[(b, oid)]
+            kps.append(project_points(self.keypoints_3d[oid], K, R, t) + self.offsets[r // block])
+        return torch.tensor(np.stack(kps)), torch.full((n, K_PTS), 0.8)
+
+
+def test_crop_tta_takes_the_median_of_the_crops_keypoints():
+    """crop_tta=3: one KPD call on the 3 crops of every box (tta_boxes), each keypoint the median of
+    its 3 locations — a +40 px and a -40 px crop leave the exact GT crop's pose; crop_tta=1 sees the
+    first crop only. Bad values name crop_tta."""
+    from kpd6d.pnp.estimator import tta_boxes
+
+    kp3d, gt, targets = _scene(np.random.default_rng(0))
+    offsets = [np.array([40.0, 0.0]), np.array([0.0, 0.0]), np.array([-40.0, 0.0])]
+    kpd = CropOffsetKPD(kp3d, gt, offsets, 3)
+    pipe = PosePipeline(DETECTORS.build("oracle"), kpd, pnp="epnp", top_l=None, device="cpu", crop_tta=3)
+    out = pipe.predict_batch(_images(), LINEMOD_K, targets)
+    given = np.concatenate([t["boxes"] for t in targets])
+    assert len(kpd.seen) == 1
+    np.testing.assert_allclose(kpd.seen[0], tta_boxes(given, 3), atol=1e-4)
+    for b, preds in enumerate(out):
+        for p in preds:
+            R, t, _ = gt[(b, p["obj_id"])]
+            assert p["ok"] and rotation_error_deg(p["R"], R) < 0.1 and np.linalg.norm(p["t"] - t) < 1.0
+            np.testing.assert_allclose(p["confidences"], 0.8, atol=1e-6)
+    single = PosePipeline(DETECTORS.build("oracle"), CropOffsetKPD(kp3d, gt, offsets, 1), pnp="epnp", top_l=None,
+                          device="cpu").predict_batch(_images(), LINEMOD_K, targets)
+    errs = [np.abs(p["keypoints_2d"] - project_points(kp3d[p["obj_id"]], LINEMOD_K, *gt[(b, p["obj_id"])][:2])).max()
+            for b, preds in enumerate(single) for p in preds]
+    assert len(errs) == 3 and min(errs) == pytest.approx(40.0, abs=1e-3)  # crop_tta=1: the first crop's keypoints, 40 px off
+    for bad in (0, 10, 2.5, True, "3"):
+        with pytest.raises(PipelineInputError, match="crop_tta must be an integer from 1 to 9"):
+            PosePipeline(DETECTORS.build("oracle"), FakeKPD({}, {}), pnp="epnp", device="cpu", crop_tta=bad)

@@ -69,13 +69,13 @@ class PosePipeline(PoseEstimatorBase):
     def __init__(self, detector, kpd, pnp: Any = "epnp_ransac", top_l: int | None = 20,
                  device: str | torch.device | None = None, refine_boxes: int = 0, min_confidence: float = 0.0,
                  residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                 depth_calibration: Any = 1.0, candidates: Any = 1) -> None:
+                 depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1) -> None:
         if not hasattr(detector, "predict"):
             raise PipelineInputError(f"detector must have .predict(images, targets=None), got {type(detector).__name__}")
         if not hasattr(kpd, "predict_keypoints") or not hasattr(kpd, "keypoints_3d"):
             raise PipelineInputError(f"kpd must have .predict_keypoints(...) and .keypoints_3d, got {type(kpd).__name__}")
         self._set_options(pnp, top_l, refine_boxes, min_confidence, residual_scale_px, box_scale, depth_calibration,
-                          candidates)
+                          candidates, crop_tta)
         self.detector, self.kpd = detector, kpd
         self.device = torch.device(device) if device is not None else default_device()
         for m in (detector, kpd):
@@ -88,7 +88,8 @@ class PosePipeline(PoseEstimatorBase):
                          top_l: int | None = 20, device: str | torch.device | None = None,
                          obj_ids: Sequence[int] | None = None, refine_boxes: int = 0, min_confidence: float = 0.0,
                          residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                         depth_calibration: Any = 1.0, candidates: Any = 1, **detector_overrides: Any) -> PosePipeline:
+                         depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1,
+                         **detector_overrides: Any) -> PosePipeline:
         """Load a detector checkpoint (or ``"oracle"``) and a KPD checkpoint (or a networks manifest
         of one KPD per object, :mod:`kpd6d.kpd.ensemble`)."""
         from kpd6d.kpd.ensemble import load_kpd
@@ -105,14 +106,14 @@ class PosePipeline(PoseEstimatorBase):
             det = load_detector(detector, obj_ids=obj_ids, map_location=device, **detector_overrides)
         return cls(det, kpd_module, pnp=pnp, top_l=top_l, device=device, refine_boxes=refine_boxes,
                    min_confidence=min_confidence, residual_scale_px=residual_scale_px, box_scale=box_scale,
-                   depth_calibration=depth_calibration, candidates=candidates)
+                   depth_calibration=depth_calibration, candidates=candidates, crop_tta=crop_tta)
 
     @classmethod
     def from_export(cls, export_dir: str | os.PathLike, backend: str = "onnxruntime", *, pnp: Any = "epnp_ransac",
                     top_l: int | None = 20, detector: str = "export", obj_ids: Sequence[int] | None = None,
                     refine_boxes: int = 0, device: str | torch.device | None = None, threads: int | None = None,
                     min_confidence: float = 0.0, residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                    depth_calibration: Any = 1.0, candidates: Any = 1, **detector_overrides: Any):
+                    depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1, **detector_overrides: Any):
         """A pipeline from a ``kpd6d-export`` folder on ``backend`` (``kpd6d.deploy.BACKENDS``).
 
         ``onnxruntime`` / ``openvino``: a :class:`kpd6d.deploy.runtime.RuntimePipeline` (the same
@@ -128,13 +129,13 @@ class PosePipeline(PoseEstimatorBase):
             return RuntimePipeline(export_dir, backend, pnp=pnp, top_l=top_l, refine_boxes=refine_boxes,
                                    detector=detector, obj_ids=obj_ids, threads=threads, min_confidence=min_confidence,
                                    residual_scale_px=residual_scale_px, box_scale=box_scale, depth_calibration=depth_calibration,
-                                   candidates=candidates, **detector_overrides)
+                                   candidates=candidates, crop_tta=crop_tta, **detector_overrides)
         src = read_sidecar(export_dir)["source"]
         det = "oracle" if detector == "oracle" or not src.get("detector_ckpt") else src["detector_ckpt"]
         return cls.from_checkpoints(det, src["kpd_ckpt"], pnp=pnp, top_l=top_l, device=device, obj_ids=obj_ids,
                                     refine_boxes=refine_boxes, min_confidence=min_confidence,
                                     residual_scale_px=residual_scale_px, box_scale=box_scale, depth_calibration=depth_calibration,
-                                    candidates=candidates, **detector_overrides)
+                                    candidates=candidates, crop_tta=crop_tta, **detector_overrides)
 
     @classmethod
     def for_backend(cls, backend: str = "torch", *, detector_ckpt: Any, kpd_ckpt: Any = None, export_dir: Any = None,

@@ -213,6 +213,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
                                         device=cfg.device, obj_ids=obj_ids,
                                         refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
                                         box_scale=cfg_float(cfg, "box_scale", 1.0),
+                                        crop_tta=to_int(cfg.get("crop_tta", 1), "crop_tta"),
                                         depth_calibration=_depth_calibration(cfg.get("depth_calibration", 1.0)),
                                         **det_opts)
     covered = sorted(int(o) for o in pipeline.kpd.keypoints_3d)
@@ -224,6 +225,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
+            **({"crop_tta": pipeline.crop_tta} if pipeline.crop_tta > 1 else {}),
             **({"candidates": candidates_record(pipeline.candidates, pipeline.candidates_any_class)}
                if pipeline.candidates > 1 or pipeline.candidates_any_class else {}),
             "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device),
@@ -272,6 +274,7 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
         "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
         "batch_size": cfg_int(cfg, "evaluate.batch_size"), "refine_boxes": to_int(cfg.evaluate.get("refine_boxes", 0) or 0, "evaluate.refine_boxes"),
         "box_scale": cfg_float(cfg, "evaluate.box_scale", 1.0),
+        "crop_tta": to_int(cfg.evaluate.get("crop_tta", 1), "evaluate.crop_tta"),
         "candidates": candidates_record(*check_candidates(to_plain(cfg.evaluate.get("candidates", 1)), ConfigError,
                                                           "evaluate.candidates")),
         "detector_overrides": check_detector_overrides(to_plain(cfg.evaluate.get("detector_overrides")), ConfigError,

@@ -227,11 +227,12 @@ class RuntimePipeline(PoseEstimatorBase):
                  top_l: int | None = 20, refine_boxes: int = 0, detector: str = "export",
                  obj_ids: Sequence[int] | None = None, threads: int | None = None, min_confidence: float = 0.0,
                  residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                 depth_calibration: Any = 1.0, candidates: Any = 1, **detector_overrides: Any) -> None:
+                 depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1,
+                 **detector_overrides: Any) -> None:
         if backend not in RUNTIME_BACKENDS:
             raise ValueError(f"backend {backend!r} unknown; known: {', '.join(RUNTIME_BACKENDS)}")
         self._set_options(pnp, top_l, refine_boxes, min_confidence, residual_scale_px, box_scale, depth_calibration,
-                          candidates)
+                          candidates, crop_tta)
         self.export_dir, self.backend = Path(export_dir), backend
         self.sidecar = read_sidecar(export_dir)
         self.kpd = RuntimeKPD(export_dir, self.sidecar["kpd"], backend, threads)

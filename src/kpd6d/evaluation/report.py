@@ -70,7 +70,7 @@ def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] 
     path = Path(path)
     lines = ["# kpd6d evaluation", ""]
     info = metrics.get("run", {})
-    for k in ("dataset", "split", "targets", "detector", "kpd", "pnp", "top_l", "refine_boxes", "box_scale",
+    for k in ("dataset", "split", "targets", "detector", "kpd", "pnp", "top_l", "refine_boxes", "box_scale", "crop_tta",
               "depth_calibration", "frames", "device"):
         if k in info:
             lines.append(f"- {k}: `{info[k]}`")

@@ -6,6 +6,8 @@ settings and their checks, ``predict_batch`` / ``detect`` / ``predict_boxes``, t
 detector's output, the estimation loop with box refinement (``refine_boxes``: re-crop on the box of
 the object's surface points projected with the estimated pose), ``box_scale`` (the KPD crops on each
 box grown by this factor about its centre; the boxes reported and refined stay as they are),
+``crop_tta`` (test-time crops: the KPD sees n jittered crops of each box, :data:`CROP_TTA_JITTER`, and each
+keypoint is the median of its n locations, its confidence the mean),
 ``depth_calibration`` (each estimated translation multiplied by a factor, one for all objects or one per
 object: a depth calibration fitted on synthetic validation, :mod:`kpd6d.evaluation.calibration`),
 ``candidates`` (for scenes where each object appears at most once, as in BOP's LM-O: the ``n``
@@ -41,8 +43,36 @@ from kpd6d.geometry import bbox_from_points, check_box_inputs, check_intrinsics,
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
-__all__ = ["PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options", "candidates_record",
-           "check_candidates", "parse_depth_calibration", "scale_boxes", "top_candidates"]
+__all__ = ["CROP_TTA_JITTER", "PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options",
+           "candidates_record", "check_candidates", "combine_tta", "parse_depth_calibration", "scale_boxes",
+           "top_candidates", "tta_boxes"]
+
+
+#: ``crop_tta=n`` uses the first n of these crops of each box: (side factor, x shift, y shift as
+#: fractions of the box side) about the box centre — the box itself, then 0.9x / 1.1x, then shifted.
+CROP_TTA_JITTER = ((1.0, 0.0, 0.0), (0.9, 0.0, 0.0), (1.1, 0.0, 0.0), (1.0, 0.06, 0.06), (1.0, -0.06, -0.06),
+                   (0.9, 0.06, 0.06), (1.1, 0.06, 0.06), (0.9, -0.06, -0.06), (1.1, -0.06, -0.06))
+
+
+def tta_boxes(boxes: np.ndarray, n: int) -> np.ndarray:
+    """(n * N, 4) xywh: the first ``n`` crops of :data:`CROP_TTA_JITTER` of each of ``boxes`` (N, 4),
+    crop-major (rows ``j * N + i`` are crop j of box i)."""
+    b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
+    centre, side = b[:, :2] + b[:, 2:] / 2, b[:, 2:]
+    out = []
+    for f, dx, dy in CROP_TTA_JITTER[:n]:
+        c = centre + side * np.array([dx, dy])
+        out.append(np.concatenate([c - f * side / 2, f * side], axis=1))
+    return np.concatenate(out)
+
+
+def combine_tta(kp2d: np.ndarray, conf: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+    """Keypoints (n * N, k, 2) and confidences (n * N, k) of :func:`tta_boxes`' crops → each keypoint's
+    coordinate-wise median over the n crops (robust to one crop's outlier) and its mean confidence."""
+    kp = np.asarray(kp2d, dtype=np.float64)
+    kp = kp.reshape(n, -1, *kp.shape[1:])
+    c = np.asarray(conf, dtype=np.float64).reshape(n, kp.shape[1], -1)
+    return np.median(kp, axis=0), c.mean(axis=0)
 
 
 def scale_boxes(boxes: np.ndarray, factor: float) -> np.ndarray:
@@ -228,9 +258,13 @@ class PoseEstimatorBase:
 
     def _set_options(self, pnp: Any, top_l: int | None, refine_boxes: int, min_confidence: float,
                      residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                     depth_calibration: Any = 1.0, candidates: Any = 1) -> None:
+                     depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1) -> None:
         """Check and keep the settings both pipelines take."""
         err = self.input_error
+        if isinstance(crop_tta, bool) or not isinstance(crop_tta, (int, np.integer)) \
+                or not 1 <= int(crop_tta) <= len(CROP_TTA_JITTER):
+            raise err(f"crop_tta must be an integer from 1 to {len(CROP_TTA_JITTER)}, got {crop_tta!r}")
+        self.crop_tta = int(crop_tta)
         self.candidates, self.candidates_any_class = check_candidates(candidates, err)
         self.depth_calibration_default, self.depth_calibration_per_object = parse_depth_calibration(depth_calibration, err)
         self.box_scale = _positive_number(box_scale, "box_scale", err)
@@ -355,7 +389,7 @@ class PoseEstimatorBase:
         t_kpd = t_pnp = 0.0
         for it in range(self.refine_boxes + 1):
             ta = time.perf_counter()
-            kp2d, conf = self._keypoints(x, scale_boxes(cur, self.box_scale), idx, obj_ids)
+            kp2d, conf = self._crop_keypoints(x, scale_boxes(cur, self.box_scale), idx, obj_ids)
             tb = time.perf_counter()
             if pts3d.shape[1] != kp2d.shape[1]:
                 raise self.input_error(f"KPD returned {kp2d.shape[1]} keypoints but keypoints_3d has "
@@ -371,6 +405,15 @@ class PoseEstimatorBase:
                      residual_scale_px=self.residual_scale_px, depth_calibration=dscale)
         self.last_timings = {"detect": 0.0, "kpd": t_kpd, "pnp": t_pnp, "total": t_kpd + t_pnp}
         return out
+
+    def _crop_keypoints(self, x, boxes: np.ndarray, idx: np.ndarray, obj_ids: list[int]):
+        """``_keypoints`` on ``boxes``; with ``crop_tta`` n > 1 one KPD call on n crops of each box
+        (:func:`tta_boxes`), combined by :func:`combine_tta`."""
+        n = self.crop_tta
+        if n == 1:
+            return self._keypoints(x, boxes, idx, obj_ids)
+        kp2d, conf = self._keypoints(x, tta_boxes(boxes, n), np.tile(idx, n), list(obj_ids) * n)
+        return combine_tta(kp2d, conf, n)
 
     def depth_factors(self, obj_ids) -> np.ndarray | None:
         """The ``depth_calibration`` factor of each of ``obj_ids`` (None when every factor is 1)."""

@@ -170,6 +170,7 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
 def test_per_object_kpd_networks_train_evaluate_and_resume(tmp_path):
     """kpd_networks=per_object: one KPD per object (each covering only its object), a manifest the
     pipeline loads as one KPD, each box answered by its own object's network."""
+    import numpy as np
     import torch
 
     from kpd6d.kpd.ensemble import KPDEnsemble, load_kpd, read_manifest
@@ -199,6 +200,13 @@ def test_per_object_kpd_networks_train_evaluate_and_resume(tmp_path):
         kp_i, c_i = own.predict_keypoints(images, boxes[i:i + 1], idx[i:i + 1], obj[i:i + 1])
         torch.testing.assert_close(kp[i], kp_i[0].float(), atol=1e-2, rtol=0)
         torch.testing.assert_close(conf[i], c_i[0].float(), atol=1e-3, rtol=0)
+    from kpd6d.predict import corners_from_kpd  # kpd6d-predict's drawn boxes: each object's surface points
+
+    for o, corners in corners_from_kpd(ens).items():
+        pts = KPDModule.load_checkpoint(members[o]).surface_points(o)
+        np.testing.assert_allclose(corners.min(0), pts.min(0))
+        np.testing.assert_allclose(corners.max(0), pts.max(0))
+        assert corners.shape == (8, 3)
     with pytest.raises(KeyError, match=r"do not cover object 3; they cover \[1, 2\]"):
         ens.predict_keypoints(images, boxes[:1], idx[:1], torch.tensor([3]))
 

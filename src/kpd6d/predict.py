@@ -299,12 +299,11 @@ def predict_inputs(pipeline, source: str | os.PathLike | int, K: np.ndarray, out
 
 
 def corners_from_kpd(kpd) -> dict[int, np.ndarray]:
-    """3D box corners per object from the KPD checkpoint's model points (else its keypoints)."""
-    hp = getattr(kpd, "hparams", {})
-    pts = hp.get("model_points") if hasattr(hp, "get") else None
+    """3D box corners per object from the KPD's surface points (a checkpoint's model points, else its
+    keypoints; also for one KPD per object and the exported runtime's KPD)."""
     out = {}
-    for j, (oid, kp) in enumerate(kpd.keypoints_3d.items()):
-        p = np.asarray(pts[j], float) if pts else np.asarray(kp, float)
+    for oid, kp in kpd.keypoints_3d.items():
+        p = np.asarray(kpd.surface_points(int(oid)) if hasattr(kpd, "surface_points") else kp, float).reshape(-1, 3)
         lo, hi = p.min(0), p.max(0)
         out[int(oid)] = np.array([[x, y, z] for z in (lo[2], hi[2]) for y in (lo[1], hi[1]) for x in (lo[0], hi[0])])
     return out

@@ -134,7 +134,6 @@ class RuntimeKPD:
         self.keypoints_3d = {o: np.asarray(k, dtype=np.float64) for o, k in zip(self.obj_ids, node["keypoints_3d"])}
         mp = node.get("model_points")
         self._surface = {o: np.asarray(p, dtype=np.float64) for o, p in zip(self.obj_ids, mp)} if mp else None
-        self.hparams = {"model_points": mp, "obj_ids": self.obj_ids}  # what kpd6d.predict.corners_from_kpd reads
         codec = node["codec"]
         self.input_size, self.out_stride = int(codec["input_size"]), int(codec["out_stride"])
         self.crop_scale = float(codec["crop_scale"])

@@ -50,6 +50,7 @@ class KPDEnsemble(torch.nn.Module):
         self.obj_ids = sorted(ks)
         self.num_keypoints = next(iter(ks.values()))
         self.members = torch.nn.ModuleDict({str(o): members[o] for o in self.obj_ids})
+        self._keypoints_3d = {o: np.asarray(members[o].keypoints_3d[o], dtype=np.float64) for o in self.obj_ids}
 
     @property
     def device(self) -> torch.device:
@@ -58,7 +59,7 @@ class KPDEnsemble(torch.nn.Module):
     @property
     def keypoints_3d(self) -> dict[int, np.ndarray]:
         """obj_id -> (k, 3) keypoints (model frame, mm), each from its object's network."""
-        return {o: np.asarray(self.member(o).keypoints_3d[o], dtype=np.float64) for o in self.obj_ids}
+        return self._keypoints_3d
 
     def member(self, obj_id: int):
         key = str(int(obj_id))

@@ -100,6 +100,7 @@ class KPDModule(pl.LightningModule):
                              "invisible_weight, scale")
         self._obj_index = {o: i for i, o in enumerate(obj_ids)}
         self._pnp = None
+        self._sym_cache: dict[int, Any] = {}  # object index -> symmetry transforms (validation's 2D error)
 
     # -- what the checkpoint covers --------------------------------------------------------------
     @property
@@ -260,17 +261,13 @@ class KPDModule(pl.LightningModule):
     def _symmetry_transforms(self, i: int):
         """(S, 4, 4) symmetry transforms of the checkpoint's i-th object for the symmetric 2D error
         (None: not symmetric, or a checkpoint without its symmetries)."""
-        cache = self.__dict__.setdefault("_sym_cache", {})
-        if i not in cache:
+        if i not in self._sym_cache:
+            from kpd6d.evaluation.errors import symmetry_transforms
+
             hp = self.hparams
             sym = hp.symmetries[i] if hp.get("symmetries") is not None else None
-            if not hp.symmetric[i] or not sym:
-                cache[i] = None
-            else:
-                from kpd6d.evaluation.errors import symmetry_transforms
-
-                cache[i] = symmetry_transforms(sym)
-        return cache[i]
+            self._sym_cache[i] = symmetry_transforms(sym) if hp.symmetric[i] and sym else None
+        return self._sym_cache[i]
 
     def configure_optimizers(self):
         from kpd6d.training import configure_optimization

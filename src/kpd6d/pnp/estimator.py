@@ -58,12 +58,8 @@ def tta_boxes(boxes: np.ndarray, n: int) -> np.ndarray:
     """(n * N, 4) xywh: the first ``n`` crops of :data:`CROP_TTA_JITTER` of each of ``boxes`` (N, 4),
     crop-major (rows ``j * N + i`` are crop j of box i)."""
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    centre, side = b[:, :2] + b[:, 2:] / 2, b[:, 2:]
-    out = []
-    for f, dx, dy in CROP_TTA_JITTER[:n]:
-        c = centre + side * np.array([dx, dy])
-        out.append(np.concatenate([c - f * side / 2, f * side], axis=1))
-    return np.concatenate(out)
+    shifted = [b + np.concatenate([b[:, 2:] * [dx, dy], np.zeros_like(b[:, 2:])], axis=1) for _, dx, dy in CROP_TTA_JITTER[:n]]
+    return np.concatenate([scale_boxes(s, f) for s, (f, _, _) in zip(shifted, CROP_TTA_JITTER)])
 
 
 def combine_tta(kp2d: np.ndarray, conf: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:

@@ -213,3 +213,48 @@ def test_validation_2d_error_uses_the_checkpoints_symmetries():
     m = module.pose_metrics(torch.from_numpy(kp), torch.ones(2, K_PTS), obj, torch.from_numpy(np.stack([LINEMOD_K] * 2)),
                             torch.from_numpy(R), torch.from_numpy(t))
     assert m["proj2d_acc_5px"] == 0.5  # object 7 a hit (symmetric), object 3 a miss (rotated 180°)
+
+
+def test_coordinate_loss_is_the_l1_error_of_the_decoded_centroid():
+    """loss.coord_weight: the L1 distance (heatmap px) between the soft-argmax centroid and the target,
+    checked against a centroid computed by hand; keypoints outside the heatmap weigh 0."""
+    module = _module(loss={"coord_weight": 0.5, "coord_window": 1})  # decoded with the default subpixel
+    S = module.codec.heatmap_size  # 16
+    pred = torch.zeros(1, 2, S, S)
+    pred[0, 0, 5, 7], pred[0, 0, 5, 8], pred[0, 0, 6, 7] = 1.0, 0.5, 0.25  # peak (7, 5), (x, y)
+    pred[0, 1, 2, 2] = 1.0
+    cx = (7 * 1.0 + 8 * 0.5 + 7 * 0.25) / 1.75
+    cy = (5 * 1.0 + 5 * 0.5 + 6 * 0.25) / 1.75
+    target_hm = torch.tensor([[[6.0, 6.0], [40.0, 2.0]]])  # the second keypoint lies outside the heatmap
+    kps_crop = (target_hm + 0.5) * module.codec.out_stride - 0.5
+    num, den = module.coordinate_loss_terms(pred, kps_crop, None)
+    assert den.item() == 1.0
+    assert num.item() == pytest.approx(abs(cx - 6.0) + abs(cy - 6.0), rel=1e-5)
+    # gradient descent on the (positive) heatmap values alone moves the centroid onto the target
+    h = (pred + 0.1).requires_grad_(True)
+    opt = torch.optim.SGD([h], lr=0.05)
+    for _ in range(200):
+        n, _ = module.coordinate_loss_terms(h, kps_crop[:, :1], None)
+        opt.zero_grad()
+        n.backward()
+        opt.step()
+    assert module.coordinate_loss_terms(h.detach(), kps_crop[:, :1], None)[0].item() < 0.1 * num.item()
+
+
+def test_training_step_adds_the_weighted_coordinate_loss():
+    torch.manual_seed(0)
+    module = _module(loss={"coord_weight": 2.0})
+    _, items = _scene(module)
+    batch = _collate(items)
+    batch["heatmaps"] = module.targets(batch["keypoints"])
+    with torch.no_grad():
+        total = module.training_step(batch, 0)
+        pred = module(batch["image"], batch["obj_index"])
+        heat = module.heatmap_loss(pred, batch["heatmaps"], batch["visibility"])
+        num, den = module.coordinate_loss_terms(pred, batch["keypoints"], batch["visibility"])
+    assert den.item() == 4 * K_PTS
+    assert total.item() == pytest.approx(heat.item() + 2.0 * num.item() / den.item(), rel=1e-5)
+    with pytest.raises(ValueError, match="coord_window must be an integer >= 1"):
+        _module(loss={"coord_weight": 1.0, "coord_window": 0})
+    with pytest.raises(ValueError, match="coord_weight must be a number >= 0"):
+        _module(loss={"coord_weight": -1.0})

@@ -95,9 +95,18 @@ class KPDModule(pl.LightningModule):
         self.visibility_weighted = bool(lcfg.pop("visibility_weighted", False))
         self.invisible_weight = float(lcfg.pop("invisible_weight", 0.0))
         self.loss_scale = float(lcfg.pop("scale", 1.0))
+        self.coord_weight = float(lcfg.pop("coord_weight", 0.0))
+        coord_window = lcfg.pop("coord_window", 2)
         if lcfg:
             raise ValueError(f"KPDModule: unknown loss option(s) {sorted(lcfg)}; known: visibility_weighted, "
-                             "invisible_weight, scale")
+                             "invisible_weight, scale, coord_weight, coord_window")
+        if not (np.isfinite(self.coord_weight) and self.coord_weight >= 0):
+            raise ValueError(f"KPDModule: loss.coord_weight must be a number >= 0, got {self.coord_weight}")
+        if isinstance(coord_window, bool) or not isinstance(coord_window, int) or coord_window < 1:
+            raise ValueError(f"KPDModule: loss.coord_window must be an integer >= 1 (heatmap px), got {coord_window!r}")
+        from kpd6d.kpd.decoders import SoftArgmaxDecoder
+
+        self._coord_reader = SoftArgmaxDecoder(temperature=1.0, window=coord_window)
         self._obj_index = {o: i for i, o in enumerate(obj_ids)}
         self._pnp = None
         self._sym_cache: dict[int, Any] = {}  # object index -> symmetry transforms (validation's 2D error)
@@ -181,6 +190,26 @@ class KPDModule(pl.LightningModule):
             return (per_kp * w).sum(), w.sum()
         return per_kp.sum(), per_kp.new_tensor(float(per_kp.numel()))
 
+    def coordinate_loss_terms(self, pred: torch.Tensor, keypoints_crop: torch.Tensor,
+                              visibility: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+        """The coordinate loss (``loss.coord_weight``) as (weighted sum, sum of weights): the L1 distance
+        (heatmap px) between the centroid of ``max(pred, 0)`` in a (2·``coord_window``+1)² window around
+        each heatmap's maximum (the ``soft_argmax`` decoder; integral regression as in DSNT / Sun et
+        al. 2018, differentiable in ``pred``) and ``keypoints_crop``. Keypoints outside the heatmap,
+        which no centroid can reach, weigh 0; with ``visibility_weighted`` invisible ones weigh
+        ``invisible_weight``. Inference decodes with the codec's decoder, whatever it is."""
+        from kpd6d.kpd.heatmaps import crop_to_heatmap
+
+        coords, _ = self._coord_reader(pred)
+        target = crop_to_heatmap(keypoints_crop.float(), self.codec.out_stride)
+        S = self.codec.heatmap_size
+        w = ((target >= -0.5) & (target <= S - 0.5)).all(-1).float()
+        if self.visibility_weighted and visibility is not None:
+            v = visibility.float()
+            w = w * (v + self.invisible_weight * (1 - v))
+        err = (coords - target).abs().sum(-1)
+        return (err * w).sum(), w.sum()
+
     def decode(self, heatmaps: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
         """Heatmaps → (keypoints (B, k, 2) crop px, confidences (B, k)): the codec's decoding."""
         return self.codec.decode(heatmaps)
@@ -199,6 +228,11 @@ class KPDModule(pl.LightningModule):
             else self.targets(kps)
         pred = self(images, batch["obj_index"])
         loss = self.heatmap_loss(pred, target, vis)
+        if self.coord_weight > 0:
+            num, den = self.coordinate_loss_terms(pred, kps, vis)
+            coord = num / den.clamp(min=1.0)
+            self.log("train/coord_loss", coord, on_step=True, on_epoch=True, batch_size=images.shape[0])
+            loss = loss + self.coord_weight * coord
         self.log("train/loss", loss, prog_bar=True, on_step=True, on_epoch=True, batch_size=images.shape[0])
         return loss
 

@@ -230,6 +230,13 @@ def test_coordinate_loss_is_the_l1_error_of_the_decoded_centroid():
     num, den = module.coordinate_loss_terms(pred, kps_crop, None)
     assert den.item() == 1.0
     assert num.item() == pytest.approx(abs(cx - 6.0) + abs(cy - 6.0), rel=1e-5)
+    # visibility-weighted: an invisible keypoint inside the heatmap weighs invisible_weight (here 0)
+    weighted = _module(loss={"coord_weight": 0.5, "coord_window": 1, "visibility_weighted": True})
+    inside_both = (torch.tensor([[[6.0, 6.0], [3.0, 2.0]]]) + 0.5) * module.codec.out_stride - 0.5
+    n_all, d_all = module.coordinate_loss_terms(pred, inside_both, torch.tensor([[0.0, 1.0]]))
+    n_vis, d_vis = weighted.coordinate_loss_terms(pred, inside_both, torch.tensor([[0.0, 1.0]]))
+    assert d_all.item() == 2.0 and d_vis.item() == 1.0
+    assert n_vis.item() == pytest.approx(n_all.item() - num.item(), rel=1e-5)  # only the second keypoint's error
     # gradient descent on the (positive) heatmap values alone moves the centroid onto the target
     h = (pred + 0.1).requires_grad_(True)
     opt = torch.optim.SGD([h], lr=0.05)

@@ -185,10 +185,18 @@ class KPDModule(pl.LightningModule):
         validation can add them up across batches and processes."""
         se = (pred.float() - target.float()) ** 2
         per_kp = se.mean(dim=(-1, -2))  # (B, k)
-        if self.visibility_weighted and visibility is not None:
-            w = visibility.float() + self.invisible_weight * (1 - visibility.float())
+        w = self._visibility_weights(visibility)
+        if w is not None:
             return (per_kp * w).sum(), w.sum()
         return per_kp.sum(), per_kp.new_tensor(float(per_kp.numel()))
+
+    def _visibility_weights(self, visibility: torch.Tensor | None) -> torch.Tensor | None:
+        """Per-keypoint loss weights with ``visibility_weighted``: 1 visible, ``invisible_weight``
+        invisible; None when the losses do not weigh by visibility."""
+        if not self.visibility_weighted or visibility is None:
+            return None
+        v = visibility.float()
+        return v + self.invisible_weight * (1 - v)
 
     def coordinate_loss_terms(self, pred: torch.Tensor, keypoints_crop: torch.Tensor,
                               visibility: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
@@ -204,9 +212,9 @@ class KPDModule(pl.LightningModule):
         target = crop_to_heatmap(keypoints_crop.float(), self.codec.out_stride)
         S = self.codec.heatmap_size
         w = ((target >= -0.5) & (target <= S - 0.5)).all(-1).float()
-        if self.visibility_weighted and visibility is not None:
-            v = visibility.float()
-            w = w * (v + self.invisible_weight * (1 - v))
+        vis_w = self._visibility_weights(visibility)
+        if vis_w is not None:
+            w = w * vis_w
         err = (coords - target).abs().sum(-1)
         return (err * w).sum(), w.sum()
 

@@ -27,7 +27,9 @@ from kpd6d.geometry import affine_apply, invert_affine
 from kpd6d.io import to_plain
 from kpd6d.kpd.checkpoint import kpd_hparams
 from kpd6d.kpd.codec import HeatmapCodec, build_codec
+from kpd6d.kpd.decoders import SoftArgmaxDecoder
 from kpd6d.kpd.heads import KeypointNet
+from kpd6d.kpd.heatmaps import crop_to_heatmap
 
 __all__ = ["KPDModule"]
 
@@ -104,8 +106,6 @@ class KPDModule(pl.LightningModule):
             raise ValueError(f"KPDModule: loss.coord_weight must be a number >= 0, got {self.coord_weight}")
         if isinstance(coord_window, bool) or not isinstance(coord_window, int) or coord_window < 1:
             raise ValueError(f"KPDModule: loss.coord_window must be an integer >= 1 (heatmap px), got {coord_window!r}")
-        from kpd6d.kpd.decoders import SoftArgmaxDecoder
-
         self._coord_reader = SoftArgmaxDecoder(temperature=1.0, window=coord_window)
         self._obj_index = {o: i for i, o in enumerate(obj_ids)}
         self._pnp = None
@@ -206,8 +206,6 @@ class KPDModule(pl.LightningModule):
         al. 2018, differentiable in ``pred``) and ``keypoints_crop``. Keypoints outside the heatmap,
         which no centroid can reach, weigh 0; with ``visibility_weighted`` invisible ones weigh
         ``invisible_weight``. Inference decodes with the codec's decoder, whatever it is."""
-        from kpd6d.kpd.heatmaps import crop_to_heatmap
-
         coords, _ = self._coord_reader(pred)
         target = crop_to_heatmap(keypoints_crop.float(), self.codec.out_stride)
         S = self.codec.heatmap_size

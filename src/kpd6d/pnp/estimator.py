@@ -58,8 +58,8 @@ def tta_boxes(boxes: np.ndarray, n: int) -> np.ndarray:
     """(n * N, 4) xywh: the first ``n`` crops of :data:`CROP_TTA_JITTER` of each of ``boxes`` (N, 4),
     crop-major (rows ``j * N + i`` are crop j of box i)."""
     b = np.asarray(boxes, dtype=np.float64).reshape(-1, 4)
-    shifted = [b + np.concatenate([b[:, 2:] * [dx, dy], np.zeros_like(b[:, 2:])], axis=1) for _, dx, dy in CROP_TTA_JITTER[:n]]
-    return np.concatenate([scale_boxes(s, f) for s, (f, _, _) in zip(shifted, CROP_TTA_JITTER)])
+    side = b[:, 2:]
+    return np.concatenate([scale_boxes(b + np.hstack([side * [dx, dy], 0 * side]), f) for f, dx, dy in CROP_TTA_JITTER[:n]])
 
 
 def combine_tta(kp2d: np.ndarray, conf: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:

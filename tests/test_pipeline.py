@@ -363,6 +363,49 @@ def test_candidates_keep_the_pose_the_keypoints_verify():
         PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt), candidates=0, device="cpu")
 
 
+def test_candidate_rank_weighs_the_detection_score():
+    """best_candidates ranks an object's candidates by pose confidence x detection score ** w: w = 0
+    is the pose confidence alone, w = 1 (the default) the product, a large w the detector's order;
+    check_candidates / candidates_record carry w (only when it is not the default) and name bad values."""
+    from kpd6d.pnp.estimator import (
+        DETECTOR_WEIGHT,
+        best_candidates,
+        candidate_options,
+        candidates_record,
+        check_candidates,
+    )
+
+    poses = [{"obj_id": 1, "score": 0.9, "confidence": 0.5},   # products: 0.45
+             {"obj_id": 1, "score": 0.3, "confidence": 0.6},   # 0.18: the most confident pose
+             {"obj_id": 1, "score": 0.5, "confidence": 0.8},   # 0.40
+             {"obj_id": 2, "score": 0.2, "confidence": 0.0}]
+
+    def pick(w):
+        return [(p["obj_id"], p["score"]) for p in best_candidates(poses, w)]
+
+    assert DETECTOR_WEIGHT == 1.0 and [(p["obj_id"], p["score"]) for p in best_candidates(poses)] == pick(1.0)
+    assert pick(0.0) == [(1, 0.5), (2, 0.2)]     # confidence 0.8 beats 0.6 and 0.5
+    assert pick(1.0) == [(1, 0.9), (2, 0.2)]     # 0.45 > 0.40 > 0.18
+    assert pick(20.0) == [(1, 0.9), (2, 0.2)]    # the detector's order
+    assert pick(0.5) == [(1, 0.5), (2, 0.2)]     # 0.8 * 0.5 ** 0.5 = 0.566 > 0.5 * 0.9 ** 0.5 = 0.474
+    # a failed pose (confidence 0) loses whatever its score; equal keys go to the higher score
+    assert pick(1.0) == pick(3.0) and best_candidates(
+        [{"obj_id": 3, "score": 0.2, "confidence": 0.5}, {"obj_id": 3, "score": 0.4, "confidence": 0.25}], 1.0
+    )[0]["score"] == 0.4
+
+    assert check_candidates({"per_object": 5, "detector_weight": 0}) == (5, 0, 0.0)
+    assert candidates_record(5, 0, 1.0) == 5 and candidates_record(5, 0, 0.0) == {"per_object": 5, "detector_weight": 0.0}
+    assert candidates_record(*check_candidates({"per_object": 2, "any_class": 1, "detector_weight": 2})) == {
+        "per_object": 2, "any_class": 1, "detector_weight": 2.0}
+    assert candidate_options({"per_object": 5, "detector_weight": 0.5}, "det.pt") == {
+        "candidates": {"per_object": 5, "detector_weight": 0.5}, "one_per_object": False}
+    for bad in (-1, float("nan"), "high", True):
+        with pytest.raises(ValueError, match=r"evaluate.candidates.detector_weight must be a finite number >= 0, got"):
+            check_candidates({"per_object": 2, "detector_weight": bad}, key="evaluate.candidates")
+    with pytest.raises(ValueError, match=r"known: \['any_class', 'detector_weight', 'per_object'\]"):
+        check_candidates({"weight": 1})
+
+
 def test_check_detector_overrides_names_the_key_and_value():
     from kpd6d.config import ConfigError
     from kpd6d.detection.detectors import check_detector_overrides
@@ -418,8 +461,8 @@ def test_any_class_candidates_recover_a_misclassified_object():
     dets = [{"image_index": 0, "obj_id": o, "score": s, "box": [s] * 4} for o, s in ((1, 0.9), (2, 0.5), (2, 0.4))]
     got = [(d["obj_id"], d["score"]) for d in top_candidates(dets, 1, any_class=2, obj_ids=[1, 2, 3])]
     assert got == [(1, 0.9), (2, 0.5), (2, 0.9), (3, 0.9), (1, 0.5), (3, 0.5)]
-    assert check_candidates(None) == (1, 0) and check_candidates(4) == (4, 0)
-    assert check_candidates({"any_class": 2}) == (1, 2) and candidates_record(1, 2) == {"per_object": 1, "any_class": 2}
+    assert check_candidates(None) == (1, 0, 1.0) and check_candidates(4) == (4, 0, 1.0)
+    assert check_candidates({"any_class": 2}) == (1, 2, 1.0) and candidates_record(1, 2) == {"per_object": 1, "any_class": 2}
     assert candidate_options({"per_object": 1, "any_class": 2}, "det.pt") == {
         "candidates": {"per_object": 1, "any_class": 2}, "one_per_object": False}
     assert candidate_options({"per_object": 3, "any_class": 0}, "det.pt") == {"candidates": 3, "one_per_object": False}

@@ -12,7 +12,8 @@ keypoint is the median of its n locations, its confidence the mean),
 object: a depth calibration fitted on synthetic validation, :mod:`kpd6d.evaluation.calibration`),
 ``candidates`` (for scenes where each object appears at most once, as in BOP's LM-O: the ``n``
 highest-scoring detections of each object in an image all go through KPD + PnP and the pose with the
-highest pose confidence is kept: the keypoints verify the detector's hypotheses; give the detector
+highest pose confidence times detection score is kept (``detector_weight``: the score's exponent): the
+keypoints verify the detector's hypotheses; give the detector
 ``one_per_object=False`` so that it offers more than one; ``{per_object: n, any_class: m}`` also tries
 the m best boxes of each image, whatever their class, as every object) and ``last_timings``. A subclass says
 how its images become a batch and how its networks run:
@@ -35,7 +36,7 @@ import math
 import os
 import time
 from collections.abc import Mapping
-from typing import Any
+from typing import Any, NamedTuple
 
 import numpy as np
 
@@ -50,6 +51,10 @@ __all__ = ["CROP_TTA_JITTER", "PoseEstimatorBase", "best_candidates", "build_pnp
 
 #: ``crop_tta=n`` uses the first n of these crops of each box: (side factor, x shift, y shift as
 #: fractions of the box side) about the box centre — the box itself, then 0.9x / 1.1x, then shifted.
+# candidates: a candidate pose's rank is its pose confidence x its detection score ** DETECTOR_WEIGHT
+# (chosen on synthetic LM-O validation, session 18: AR_MSPD +0.012 / +0.021 over the pose confidence
+# alone with full- / half-budget networks; docs/benchmarks.md)
+DETECTOR_WEIGHT = 1.0
 CROP_TTA_JITTER = ((1.0, 0.0, 0.0), (0.9, 0.0, 0.0), (1.1, 0.0, 0.0), (1.0, 0.06, 0.06), (1.0, -0.06, -0.06),
                    (0.9, 0.06, 0.06), (1.1, 0.06, 0.06), (0.9, -0.06, -0.06), (1.1, -0.06, -0.06))
 
@@ -122,31 +127,51 @@ def parse_depth_calibration(value: Any, error: type[Exception] = ValueError) -> 
     return factor(default, " (default)"), out
 
 
+class CandidateSpec(NamedTuple):
+    """A checked ``candidates`` setting (:func:`check_candidates`)."""
+
+    per_object: int = 1  # the n highest-scoring boxes of each object go through KPD + PnP
+    any_class: int = 0  # and the image's m best boxes of any class, as every object
+    detector_weight: float = DETECTOR_WEIGHT  # a candidate's rank: pose confidence x detection score ** this
+
+
 def check_candidates(candidates: Any, error: type[Exception] = ValueError,
-                     key: str = "candidates") -> tuple[int, int]:
-    """``candidates`` as (per_object, any_class): an int n >= 1 is (n, 0) (None: (1, 0)); a mapping
-    ``{per_object: n, any_class: m}`` (n >= 1, m >= 0; either may be left out: 1 and 0) gives both.
-    Anything else raises ``error`` naming ``key`` and the value."""
+                     key: str = "candidates") -> CandidateSpec:
+    """``candidates`` as a :class:`CandidateSpec`: an int n >= 1 is ``(n, 0, DETECTOR_WEIGHT)`` (None:
+    ``(1, 0, DETECTOR_WEIGHT)``); a mapping ``{per_object: n, any_class: m, detector_weight: w}`` (n >= 1,
+    m >= 0, w >= 0, finite; any may be left out) gives all three. Anything else raises ``error``
+    naming ``key`` and the value."""
     def count(v, low: int, name: str) -> int:
         if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low:
             raise error(f"{name} must be an integer >= {low}, got {v!r}")
         return int(v)
 
     if candidates is None:
-        return 1, 0
+        return CandidateSpec()
     if isinstance(candidates, Mapping) or hasattr(candidates, "keys"):
         spec = dict(candidates)
-        unknown = sorted(set(map(str, spec)) - {"per_object", "any_class"})
+        unknown = sorted(set(map(str, spec)) - set(CandidateSpec._fields))
         if unknown:
-            raise error(f"{key}: unknown key(s) {unknown}; known: ['any_class', 'per_object']")
-        return (count(spec.get("per_object", 1), 1, f"{key}.per_object"),
-                count(spec.get("any_class", 0), 0, f"{key}.any_class"))
-    return count(candidates, 1, key), 0
+            raise error(f"{key}: unknown key(s) {unknown}; known: {sorted(CandidateSpec._fields)}")
+        w = spec.get("detector_weight", DETECTOR_WEIGHT)
+        if isinstance(w, bool) or not _is_number(w) or not (math.isfinite(float(w)) and float(w) >= 0):
+            raise error(f"{key}.detector_weight must be a finite number >= 0, got {w!r}")
+        return CandidateSpec(count(spec.get("per_object", 1), 1, f"{key}.per_object"),
+                             count(spec.get("any_class", 0), 0, f"{key}.any_class"), float(w))
+    return CandidateSpec(count(candidates, 1, key))
 
 
-def candidates_record(per_object: int, any_class: int) -> Any:
-    """The plain value of a candidates setting: n, or ``{per_object: n, any_class: m}`` when m > 0."""
-    return int(per_object) if any_class == 0 else {"per_object": int(per_object), "any_class": int(any_class)}
+def candidates_record(per_object: int, any_class: int = 0, detector_weight: float = DETECTOR_WEIGHT) -> Any:
+    """The plain value of a candidates setting: n, or the mapping of the keys that differ from n's
+    defaults (``{per_object: n, any_class: m, detector_weight: w}``)."""
+    if any_class == 0 and detector_weight == DETECTOR_WEIGHT:
+        return int(per_object)
+    out: dict[str, Any] = {"per_object": int(per_object)}
+    if any_class:
+        out["any_class"] = int(any_class)
+    if detector_weight != DETECTOR_WEIGHT:
+        out["detector_weight"] = float(detector_weight)
+    return out
 
 
 def candidate_options(candidates: Any, detector_ckpt: Any, error: type[Exception] = ValueError,
@@ -156,16 +181,16 @@ def candidate_options(candidates: Any, detector_ckpt: Any, error: type[Exception
     one candidate per object the detector must offer several boxes per object (``one_per_object=False``;
     an override asking for ``one_per_object=True`` then is an error); with the oracle (ground-truth
     boxes) nothing."""
-    n, m = check_candidates(candidates, error)
+    spec = check_candidates(candidates, error)
     if str(detector_ckpt) == "oracle":
         return {}
     over = dict(overrides or {})
-    if n == 1 and m == 0:
+    if spec.per_object == 1 and spec.any_class == 0:
         return over
     if over.get("one_per_object") is True:
-        raise error(f"detector_overrides.one_per_object=true contradicts candidates={candidates_record(n, m)!r}: "
+        raise error(f"detector_overrides.one_per_object=true contradicts candidates={candidates_record(*spec)!r}: "
                     "several candidates per object need several boxes per object")
-    return {**over, "candidates": candidates_record(n, m), "one_per_object": False}
+    return {**over, "candidates": candidates_record(*spec), "one_per_object": False}
 
 
 def top_candidates(dets: list[dict], n: int, any_class: int = 0, obj_ids: Any = ()) -> list[dict]:
@@ -200,18 +225,21 @@ def top_candidates(dets: list[dict], n: int, any_class: int = 0, obj_ids: Any = 
     return out
 
 
-def best_candidates(poses: list[dict]) -> list[dict]:
+def best_candidates(poses: list[dict], detector_weight: float = DETECTOR_WEIGHT) -> list[dict]:
     """One pose per object of one image: among its candidates, the one with the highest pose
-    ``confidence`` (a failed pose has 0), ties to the higher detection score; in score order. The
-    kept pose records how many candidates it was chosen from (``candidates``)."""
-    best: dict[int, dict] = {}
+    ``confidence`` times its detection ``score`` to the power ``detector_weight`` (0: the pose
+    confidence alone; a failed pose has confidence 0), ties to the higher detection score; in score
+    order. The kept pose records how many candidates it was chosen from (``candidates``)."""
+    best: dict[int, tuple] = {}
     n: dict[int, int] = {}
     for p in poses:
         o = p["obj_id"]
         n[o] = n.get(o, 0) + 1
-        if o not in best or (p["confidence"], p["score"]) > (best[o]["confidence"], best[o]["score"]):
-            best[o] = p
-    return [{**p, "candidates": n[p["obj_id"]]} for p in sorted(best.values(), key=lambda p: -p["score"])]
+        key = (p["confidence"] * max(p["score"], 0.0) ** detector_weight if detector_weight else p["confidence"],
+               p["score"])
+        if o not in best or key > best[o][0]:
+            best[o] = (key, p)
+    return [{**p, "candidates": n[p["obj_id"]]} for _, p in sorted(best.values(), key=lambda kp: -kp[1]["score"])]
 
 
 def _positive_number(v, name: str, error: type[Exception]) -> float:
@@ -261,7 +289,7 @@ class PoseEstimatorBase:
                 or not 1 <= int(crop_tta) <= len(CROP_TTA_JITTER):
             raise err(f"crop_tta must be an integer from 1 to {len(CROP_TTA_JITTER)}, got {crop_tta!r}")
         self.crop_tta = int(crop_tta)
-        self.candidates, self.candidates_any_class = check_candidates(candidates, err)
+        self.candidates, self.candidates_any_class, self.candidate_detector_weight = check_candidates(candidates, err)
         self.depth_calibration_default, self.depth_calibration_per_object = parse_depth_calibration(depth_calibration, err)
         self.box_scale = _positive_number(box_scale, "box_scale", err)
         if top_l is not None and int(top_l) < 4:
@@ -317,7 +345,7 @@ class PoseEstimatorBase:
         out = self._estimate(x, Ks, [d["box"] for d in dets], [d["image_index"] for d in dets],
                              [d["obj_id"] for d in dets], [d["score"] for d in dets])
         if verify:
-            out = [best_candidates(poses) for poses in out]
+            out = [best_candidates(poses, self.candidate_detector_weight) for poses in out]
         self.last_timings["detect"] = t1 - t0
         self.last_timings["total"] = time.perf_counter() - t0
         return out

@@ -44,17 +44,18 @@ from kpd6d.geometry import bbox_from_points, check_box_inputs, check_intrinsics,
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
-__all__ = ["CROP_TTA_JITTER", "PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options",
+__all__ = ["CROP_TTA_JITTER", "DETECTOR_WEIGHT", "CandidateSpec", "PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options",
            "candidates_record", "check_candidates", "combine_tta", "parse_depth_calibration", "scale_boxes",
            "top_candidates", "tta_boxes"]
 
 
+#: ``candidates``: a candidate pose's rank is its pose confidence x its detection score ** DETECTOR_WEIGHT
+#: (chosen on synthetic LM-O validation, session 18: AR_MSPD +0.012 / +0.021 over the pose confidence
+#: alone with full- / half-budget networks; docs/benchmarks.md)
+DETECTOR_WEIGHT = 1.0
+
 #: ``crop_tta=n`` uses the first n of these crops of each box: (side factor, x shift, y shift as
 #: fractions of the box side) about the box centre — the box itself, then 0.9x / 1.1x, then shifted.
-# candidates: a candidate pose's rank is its pose confidence x its detection score ** DETECTOR_WEIGHT
-# (chosen on synthetic LM-O validation, session 18: AR_MSPD +0.012 / +0.021 over the pose confidence
-# alone with full- / half-budget networks; docs/benchmarks.md)
-DETECTOR_WEIGHT = 1.0
 CROP_TTA_JITTER = ((1.0, 0.0, 0.0), (0.9, 0.0, 0.0), (1.1, 0.0, 0.0), (1.0, 0.06, 0.06), (1.0, -0.06, -0.06),
                    (0.9, 0.06, 0.06), (1.1, 0.06, 0.06), (0.9, -0.06, -0.06), (1.1, -0.06, -0.06))
 
@@ -235,8 +236,7 @@ def best_candidates(poses: list[dict], detector_weight: float = DETECTOR_WEIGHT)
     for p in poses:
         o = p["obj_id"]
         n[o] = n.get(o, 0) + 1
-        key = (p["confidence"] * max(p["score"], 0.0) ** detector_weight if detector_weight else p["confidence"],
-               p["score"])
+        key = (p["confidence"] * max(p["score"], 0.0) ** detector_weight, p["score"])  # 0 ** 0 = 1
         if o not in best or key > best[o][0]:
             best[o] = (key, p)
     return [{**p, "candidates": n[p["obj_id"]]} for _, p in sorted(best.values(), key=lambda kp: -kp[1]["score"])]

@@ -226,9 +226,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
             **({"crop_tta": pipeline.crop_tta} if pipeline.crop_tta > 1 else {}),
-            **({"candidates": candidates_record(pipeline.candidates, pipeline.candidates_any_class,
-                                                 pipeline.candidate_detector_weight)}
-               if pipeline.candidates > 1 or pipeline.candidates_any_class else {}),
+            **({"candidates": candidates_record(*pipeline.candidate_spec)} if pipeline.candidate_spec.verifies else {}),
             "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device),
             **({"detector_overrides": det_over} if det_over and str(cfg.detector_ckpt) != "oracle" else {})}
     if backend != "torch":

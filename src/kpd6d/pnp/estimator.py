@@ -135,6 +135,11 @@ class CandidateSpec(NamedTuple):
     any_class: int = 0  # and the image's m best boxes of any class, as every object
     detector_weight: float = DETECTOR_WEIGHT  # a candidate's rank: pose confidence x detection score ** this
 
+    @property
+    def verifies(self) -> bool:
+        """Whether more than one box per object goes through KPD + PnP (and the best pose is picked)."""
+        return self.per_object > 1 or self.any_class > 0
+
 
 def check_candidates(candidates: Any, error: type[Exception] = ValueError,
                      key: str = "candidates") -> CandidateSpec:
@@ -186,7 +191,7 @@ def candidate_options(candidates: Any, detector_ckpt: Any, error: type[Exception
     if str(detector_ckpt) == "oracle":
         return {}
     over = dict(overrides or {})
-    if spec.per_object == 1 and spec.any_class == 0:
+    if not spec.verifies:
         return over
     if over.get("one_per_object") is True:
         raise error(f"detector_overrides.one_per_object=true contradicts candidates={candidates_record(*spec)!r}: "
@@ -289,7 +294,7 @@ class PoseEstimatorBase:
                 or not 1 <= int(crop_tta) <= len(CROP_TTA_JITTER):
             raise err(f"crop_tta must be an integer from 1 to {len(CROP_TTA_JITTER)}, got {crop_tta!r}")
         self.crop_tta = int(crop_tta)
-        self.candidates, self.candidates_any_class, self.candidate_detector_weight = check_candidates(candidates, err)
+        self.candidate_spec = check_candidates(candidates, err)
         self.depth_calibration_default, self.depth_calibration_per_object = parse_depth_calibration(depth_calibration, err)
         self.box_scale = _positive_number(box_scale, "box_scale", err)
         if top_l is not None and int(top_l) < 4:
@@ -338,14 +343,14 @@ class PoseEstimatorBase:
         x = self._batch(images)
         Ks = check_intrinsics(K, self._num_images(x), self.input_error)
         dets = self._detect(x, targets)
-        verify = self.candidates > 1 or self.candidates_any_class > 0
-        if verify:
-            dets = top_candidates(dets, self.candidates, self.candidates_any_class, sorted(self.kpd.keypoints_3d))
+        spec = self.candidate_spec
+        if spec.verifies:
+            dets = top_candidates(dets, spec.per_object, spec.any_class, sorted(self.kpd.keypoints_3d))
         t1 = time.perf_counter()
         out = self._estimate(x, Ks, [d["box"] for d in dets], [d["image_index"] for d in dets],
                              [d["obj_id"] for d in dets], [d["score"] for d in dets])
-        if verify:
-            out = [best_candidates(poses, self.candidate_detector_weight) for poses in out]
+        if spec.verifies:
+            out = [best_candidates(poses, spec.detector_weight) for poses in out]
         self.last_timings["detect"] = t1 - t0
         self.last_timings["total"] = time.perf_counter() - t0
         return out

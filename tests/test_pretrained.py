@@ -282,6 +282,46 @@ def test_detector_module_finetune_groups_and_frozen_batchnorm():
         DetectorModule({"name": "fcos", "obj_ids": [1], "input_size": [64, 48]}, finetune={"freeze_bn": True})
 
 
+def _fit_two_steps(module, loader, tmp_path):
+    import pytorch_lightning as pl
+
+    pl.Trainer(max_steps=2, accelerator="cpu", logger=False, enable_checkpointing=False, enable_progress_bar=False,
+               enable_model_summary=False, num_sanity_val_steps=0, default_root_dir=tmp_path).fit(module, loader)
+
+
+def _backbone_bn_means(backbone):
+    return [m.running_mean.clone() for m in backbone.modules() if isinstance(m, torch.nn.BatchNorm2d)]
+
+
+@pytest.mark.parametrize("freeze_bn", [True, False])
+def test_frozen_batchnorm_holds_through_a_lightning_fit(tmp_path, freeze_bn):
+    """Lightning leaves the module's train/eval modes as they are (it never calls ``.train()`` at fit start):
+    both stages still keep their backbone's BatchNorm statistics during ``trainer.fit`` when asked to, and
+    update them when not."""
+    from kpd6d.detection.dataset import collate_detection
+    from kpd6d.detection.module import DetectorModule
+    from kpd6d.kpd.module import KPDModule
+
+    rng = np.random.default_rng(2)
+    kpd = KPDModule(obj_ids=[1], keypoints_3d=[rng.uniform(-30, 30, (4, 3))], diameters=[80.0],
+                    backbone={"name": "tiny", "width": 8}, head={"name": "fpn", "fpn_channels": 8},
+                    input_size=32, out_stride=4, optimizer={"name": "adam", "lr": 1e-3}, finetune={"freeze_bn": freeze_bn})
+    items = [{"image": torch.rand(3, 32, 32), "keypoints": torch.from_numpy(rng.uniform(4, 28, (4, 2))).float(),
+              "visibility": torch.ones(4), "obj_index": 0, "obj_id": 1} for _ in range(4)]
+    det = DetectorModule({"name": "centernet", "obj_ids": [1], "backbone": "resnet10t", "input_size": [64, 48]},
+                         optimizer={"name": "adam", "lr": 1e-3}, augment={"enabled": False}, finetune={"freeze_bn": freeze_bn})
+    boxes = [{"boxes": torch.tensor([[10.0, 8.0, 20.0, 16.0]]), "labels": torch.tensor([0]), "obj_ids": torch.tensor([1])}
+             for _ in range(4)]
+    for module, backbone, data, collate in (
+            (kpd, kpd.net.backbone, items, torch.utils.data.default_collate),
+            (det, det.detector.backbone, [(torch.rand(3, 48, 64), b) for b in boxes], collate_detection)):
+        before = _backbone_bn_means(backbone)
+        assert before
+        _fit_two_steps(module, torch.utils.data.DataLoader(data, batch_size=2, collate_fn=collate), tmp_path)
+        same = [torch.equal(a, b) for a, b in zip(before, _backbone_bn_means(backbone))]
+        assert all(same) if freeze_bn else not any(same), type(module).__name__
+
+
 def test_torchvision_detector_on_a_packaged_timm_backbone():
     _require_package("efficientnet_lite0")
     det = DETECTORS.build("fcos", obj_ids=[1], backbone="timm:efficientnet_lite0", backbone_pretrained="imagenet",

@@ -129,6 +129,9 @@ class DetectorModule(pl.LightningModule):
             apply_train_mode(self._backbone(), self.finetune)  # keep the pretrained BatchNorm statistics
         return self
 
+    def on_train_epoch_start(self) -> None:
+        self.train()  # Lightning leaves the modules' modes as they are: finetune's frozen BatchNorm is applied here
+
     # -- training -----------------------------------------------------------------------------
     def on_fit_start(self) -> None:
         # under DDP each rank draws its own augmentations (rank 0, and a single process, keep ``seed``)

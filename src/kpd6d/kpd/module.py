@@ -323,6 +323,9 @@ class KPDModule(pl.LightningModule):
             apply_train_mode(self.net.backbone, self.hparams.finetune)  # keep the pretrained BatchNorm statistics
         return self
 
+    def on_train_epoch_start(self) -> None:
+        self.train()  # Lightning leaves the modules' modes as they are: finetune's frozen BatchNorm is applied here
+
     # -- inference -------------------------------------------------------------------------------
     @torch.no_grad()
     def predict_keypoints(self, images: torch.Tensor, boxes, image_index, obj_ids) -> tuple[torch.Tensor, torch.Tensor]:

@@ -135,6 +135,8 @@ def test_detector_outputs_and_boxes_match_torch(models, backend):
         np.testing.assert_array_equal(h.obj_ids, w.obj_ids.numpy())
         np.testing.assert_allclose(h.scores, w.scores.numpy(), atol=1e-4)
         np.testing.assert_allclose(h.boxes, w.boxes.numpy(), atol=0.01)
+    with pytest.raises(ValueError, match=r"runs at one input size .* test_scales \[1, 1.5\] needs the PyTorch checkpoint"):
+        RuntimeDetector(models["export"], read_sidecar(models["export"])["detector"], backend, test_scales=[1, 1.5])
 
 
 def test_numpy_ops_match_torch():

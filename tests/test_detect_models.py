@@ -18,7 +18,7 @@ from kpd6d.detection.centernet import (
     gaussian_radius,
     giou_loss,
 )
-from kpd6d.detection.detections import keep_best_per_class
+from kpd6d.detection.detections import keep_best_per_class, merge_scales
 from kpd6d.registry import DETECTORS, UnknownNameError, build_from_cfg
 
 OBJ_IDS = [3, 7, 11]
@@ -344,6 +344,65 @@ def test_checkpoint_round_trip_and_wrong_objects(tmp_path):
         load_detector(tmp_path / "other.pt")
     with pytest.raises(FileNotFoundError, match=r"missing\.pt"):
         load_detector(tmp_path / "missing.pt")
+
+
+def test_merge_scales_keeps_the_best_of_overlapping_boxes_per_object():
+    # image 0: object 0 found at both scales (IoU 0.81 -> one, the 0.9), object 1 on the same spot (kept: another
+    # class), a second object-0 box elsewhere (kept); image 1: only padding at scale 2
+    a = (torch.tensor([[[10.0, 10, 20, 20], [10, 10, 20, 20], [0, 0, 1, 1]], [[5, 5, 10, 10], [0, 0, 0, 0], [0, 0, 0, 0]]]),
+         torch.tensor([[0, 1, 0], [2, 0, 0]]), torch.tensor([[0.6, 0.5, -1.0], [0.4, -1.0, -1.0]]))
+    b = (torch.tensor([[[11.0, 11, 18, 18], [60, 60, 10, 10]], [[0, 0, 0, 0], [0, 0, 0, 0]]]),
+         torch.tensor([[0, 0], [0, 0]]), torch.tensor([[0.9, 0.3], [-1.0, -1.0]]))
+    boxes, labels, scores = merge_scales([a, b], iou=0.5)
+    assert boxes.shape == (2, 5, 4) and labels.shape == scores.shape == (2, 5)
+    assert scores[0, :3].tolist() == pytest.approx([0.9, 0.5, 0.3]) and (scores[0, 3:] == -1).all()
+    assert labels[0, :3].tolist() == [0, 1, 0]
+    assert boxes[0, 0].tolist() == [11, 11, 18, 18] and boxes[0, 2].tolist() == [60, 60, 10, 10]
+    assert scores[1, 0] == pytest.approx(0.4) and labels[1, 0] == 2 and (scores[1, 1:] == -1).all()
+    # below the IoU threshold both stay: IoU of the two object-0 boxes is 18^2 / 20^2 = 0.81
+    assert (merge_scales([a, b], iou=0.85)[2][0] > 0).sum() == 4
+
+
+def test_test_scales_run_the_network_at_each_size_and_merge(tmp_path, monkeypatch):
+    torch.manual_seed(0)
+    det = build_from_cfg(DETECTORS, {"name": "centernet", "obj_ids": OBJ_IDS, "backbone": "resnet10t",
+                                     "input_size": [64, 48], "score_threshold": 0.0, "max_detections": 100}).eval()
+    x = torch.rand(2, 3, 96, 128)
+    single = {}
+    for s in (1.0, 1.5):
+        det.set_test_scales([s])
+        single[s] = det.predict(x)
+    seen = []
+    raw = det.raw_predict
+    monkeypatch.setattr(det, "raw_predict", lambda im: seen.append(tuple(im.shape[-2:])) or raw(im))
+    det.set_test_scales([1, 1.5])
+    both = det.predict(x)
+    assert seen == [(48, 64), (72, 96)]
+    from torchvision.ops import box_iou
+
+    from kpd6d.detection.detections import xywh_to_xyxy
+
+    for i, d in enumerate(both):
+        # every merged box is one of the single-scale boxes (same score), and the best box of each scale
+        # survives unless a same-object box of higher score overlaps it
+        pool = torch.cat([single[1.0][i].boxes, single[1.5][i].boxes])
+        pool_s = torch.cat([single[1.0][i].scores, single[1.5][i].scores])
+        for box, score in zip(d.boxes, d.scores):
+            j = torch.nonzero((pool == box).all(1)).flatten()
+            assert len(j) and torch.isclose(pool_s[j], score).any()
+        top = max((single[1.0][i], single[1.5][i]), key=lambda e: float(e.scores[0]))
+        assert torch.equal(d.boxes[0], top.boxes[0]) and d.obj_ids[0] == top.obj_ids[0]
+        iou = box_iou(xywh_to_xyxy(d.boxes), xywh_to_xyxy(d.boxes))
+        same = (d.obj_ids[:, None] == d.obj_ids[None]) & ~torch.eye(len(d), dtype=torch.bool)
+        assert not (iou[same] > det.SCALE_NMS_IOU).any()
+    path = save_detector(det, tmp_path / "det.pt")
+    assert load_detector(path).test_scales == (1.0,)  # an inference setting, not saved with the weights
+    assert load_detector(path, test_scales=[1, 1.5]).test_scales == (1.0, 1.5)
+    with pytest.raises(DetectionInputError, match=r"test_scales must hold positive numbers"):
+        load_detector(path, test_scales=[-1])
+    with pytest.raises(DetectionInputError, match=r"OracleDetector cannot run at other input sizes"):
+        DETECTORS.build("oracle").set_test_scales([1, 2])
+    DETECTORS.build("oracle").set_test_scales([1])
 
 
 def test_checkpoint_records_every_constructor_parameter(tmp_path, monkeypatch):

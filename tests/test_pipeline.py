@@ -413,10 +413,13 @@ def test_check_detector_overrides_names_the_key_and_value():
     assert check_detector_overrides(None) == {} and check_detector_overrides({}) == {}
     assert check_detector_overrides({"score_threshold": 0, "max_detections": None, "one_per_object": False}) == {
         "score_threshold": 0.0, "one_per_object": False}
+    assert check_detector_overrides({"test_scales": [1, 1.5, 1]}) == {"test_scales": [1.0, 1.5]}
     for value, msg in (({"score_threshold": 1.5}, r"evaluate.detector_overrides.score_threshold must be a number in \[0, 1\], got 1.5"),
                        ({"max_detections": 0}, r"max_detections must be a positive integer, got 0"),
                        ({"one_per_object": "yes"}, r"one_per_object must be true or false, got 'yes'"),
-                       ({"nms": 0.5}, r"cannot override \['nms'\]; known: score_threshold, max_detections, one_per_object"),
+                       ({"nms": 0.5}, r"cannot override \['nms'\]; known: score_threshold, max_detections, one_per_object, test_scales"),
+                       ({"test_scales": [1, 0]}, r"test_scales must hold positive numbers .* got 0 in \[1, 0\]"),
+                       ({"test_scales": []}, r"detector_overrides.test_scales must be a non-empty list"),
                        (0.05, r"must be a mapping of score_threshold")):
         with pytest.raises(ConfigError, match=msg):
             check_detector_overrides(value, ConfigError, "evaluate.detector_overrides")

@@ -99,7 +99,9 @@ class PosePipeline(PoseEstimatorBase):
         if str(detector) == "oracle":
             from kpd6d.registry import DETECTORS
 
+            scales = detector_overrides.pop("test_scales", None)
             det = DETECTORS.build("oracle", obj_ids=list(obj_ids) if obj_ids else None, **detector_overrides)
+            det.set_test_scales(scales)  # a clear error unless one scale
         else:
             from kpd6d.detection import load_detector
 

@@ -189,6 +189,9 @@ class RuntimeDetector:
                  threads: int | None = None, obj_ids: Sequence[int] | None = None, **overrides: Any) -> None:
         self.node = {**dict(node), **overrides}
         self.name = self.node["name"]
+        if self.node.pop("test_scales", None) not in (None, 1, [1], (1,)):
+            raise ValueError(f"the exported {self.name} detector runs at one input size (its ONNX graph is fixed): "
+                             f"test_scales {overrides['test_scales']} needs the PyTorch checkpoint (kpd6d-evaluate)")
         self.obj_ids = None if obj_ids is None else [int(o) for o in obj_ids]
         if self.name == "oracle":
             self.session = None

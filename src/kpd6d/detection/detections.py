@@ -20,8 +20,10 @@ __all__ = [
     "Detections",
     "Detector",
     "check_images",
+    "check_test_scales",
     "keep_best_per_class",
     "load_partial_weights",
+    "merge_scales",
     "xywh_to_xyxy",
     "xyxy_to_xywh",
 ]
@@ -129,6 +131,11 @@ class Detector(nn.Module):
     """
 
     trainable = True
+    #: whether ``predict`` can run the network at other input sizes (``test_scales``); detectors that
+    #: resize inside their own model (torchvision's) or have no network (the oracle) cannot
+    rescalable = True
+    #: IoU above which boxes of one object found at two test scales are one detection (the higher score's)
+    SCALE_NMS_IOU = 0.5
 
     def __init__(self, obj_ids: Sequence[int] | None, input_size: Sequence[int] | None = None,
                  score_threshold: float = 0.1, max_detections: int = 100, one_per_object: bool = False,
@@ -161,6 +168,7 @@ class Detector(nn.Module):
         self.max_detections = int(max_detections)
         self.one_per_object = bool(one_per_object)
         self.box_stats: dict | None = None  # validation box-error statistics, kept with the checkpoint
+        self.test_scales: tuple[float, ...] = (1.0,)  # network input sizes at inference, as factors of input_size
         self.register_buffer("_obj_id_table", torch.tensor(self.obj_ids or [], dtype=torch.long),
                              persistent=False)
 
@@ -176,12 +184,23 @@ class Detector(nn.Module):
         raise NotImplementedError(f"{type(self).__name__} is not trainable")
 
     # -- inference ----------------------------------------------------------------------------
-    def network_images(self, images: torch.Tensor) -> tuple[torch.Tensor, float, float]:
-        """Resize to ``input_size``; returns (images, sx, sy) with input px = network px * (sx, sy)."""
+    def set_test_scales(self, scales: Sequence[float] | None) -> None:
+        """Run the network at each of these input sizes (factors of ``input_size``, or of the image size
+        when it is None) and merge what they find (:func:`merge_scales`); None or ``[1]``: one size.
+        Larger scales find small objects that the training size misses (test-time augmentation)."""
+        scales = check_test_scales(scales, DetectionInputError, "test_scales")
+        if scales != (1.0,) and not self.rescalable:
+            raise DetectionInputError(f"{type(self).__name__} cannot run at other input sizes (test_scales "
+                                      f"{list(scales)}); use a CenterNet detector or test_scales [1]")
+        self.test_scales = scales
+
+    def network_images(self, images: torch.Tensor, scale: float = 1.0) -> tuple[torch.Tensor, float, float]:
+        """Resize to ``input_size`` (times ``scale``); returns (images, sx, sy) with input px = network px * (sx, sy)."""
         H, W = images.shape[-2:]
-        if self.input_size is None or (W, H) == self.input_size:
+        w, h = self.input_size or (W, H)
+        w, h = max(1, round(w * scale)), max(1, round(h * scale))
+        if (W, H) == (w, h):
             return images, 1.0, 1.0
-        w, h = self.input_size
         x = nn.functional.interpolate(images, size=(h, w), mode="bilinear", align_corners=False,
                                       antialias=True)
         return x, W / w, H / h
@@ -194,13 +213,16 @@ class Detector(nn.Module):
             return []
         was_training = self.training
         self.eval()
+        outs = []
         try:
-            x, sx, sy = self.network_images(images)
-            boxes, labels, scores = self.raw_predict(x)
+            for s in self.test_scales:
+                x, sx, sy = self.network_images(images, s)
+                boxes, labels, scores = self.raw_predict(x)
+                outs.append((boxes * torch.tensor([sx, sy, sx, sy], dtype=boxes.dtype, device=boxes.device),
+                             labels, scores))
         finally:
             self.train(was_training)
-        scale = torch.tensor([sx, sy, sx, sy], dtype=boxes.dtype, device=boxes.device)
-        return self.postprocess(boxes * scale, labels, scores)
+        return self.postprocess(*(outs[0] if len(outs) == 1 else merge_scales(outs, self.SCALE_NMS_IOU)))
 
     def postprocess(self, boxes: torch.Tensor, labels: torch.Tensor, scores: torch.Tensor) -> list[Detections]:
         """Padded (B, K, ...) score-sorted outputs -> list of :class:`Detections` (vectorised masks)."""
@@ -221,6 +243,43 @@ class Detector(nn.Module):
     def spec(self) -> dict:
         """Constructor parameters to rebuild this detector (see :func:`kpd6d.detection.load_detector`)."""
         return dict(getattr(self, "_spec", {}))
+
+
+def check_test_scales(value: Any, error: type[Exception] = ValueError, key: str = "test_scales") -> tuple[float, ...]:
+    """None -> ``(1.0,)``; else a non-empty list of positive numbers (duplicates dropped, order kept)."""
+    if value is None:
+        return (1.0,)
+    if isinstance(value, (int, float)) and not isinstance(value, bool):
+        value = [value]
+    if isinstance(value, (str, bytes)) or not isinstance(value, Sequence) or not value:
+        raise error(f"{key} must be a non-empty list of positive numbers (input-size factors, e.g. [1, 1.5]), "
+                    f"got {value!r}")
+    out: list[float] = []
+    for v in value:
+        if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 < float(v) < float("inf"):
+            raise error(f"{key} must hold positive numbers (input-size factors, e.g. [1, 1.5]), got {v!r} in {list(value)}")
+        if float(v) not in out:
+            out.append(float(v))
+    return tuple(out)
+
+
+def merge_scales(outputs: Sequence[tuple[torch.Tensor, torch.Tensor, torch.Tensor]],
+                 iou: float = 0.5) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """Padded ``(boxes (B, K, 4) xywh, labels (B, K), scores (B, K))`` of one image batch found at several
+    input sizes (boxes already in the same pixels) -> one padded, score-sorted triple: per image and
+    class, a box that overlaps a higher-scored one by IoU > ``iou`` is dropped (padding: score -1)."""
+    from torchvision.ops import batched_nms
+
+    boxes = torch.cat([o[0] for o in outputs], 1)
+    labels = torch.cat([o[1] for o in outputs], 1)
+    scores = torch.cat([o[2] for o in outputs], 1)
+    keep = torch.zeros_like(scores, dtype=torch.bool)
+    for b in range(scores.shape[0]):  # a few hundred boxes per image
+        idx = torch.nonzero(scores[b] > 0).flatten()
+        kept = batched_nms(xywh_to_xyxy(boxes[b, idx].float()), scores[b, idx].float(), labels[b, idx], float(iou))
+        keep[b, idx[kept]] = True
+    scores, order = torch.where(keep, scores, torch.full_like(scores, -1)).sort(dim=1, descending=True)
+    return boxes.gather(1, order[..., None].expand(-1, -1, 4)), labels.gather(1, order), scores
 
 
 def load_partial_weights(module: nn.Module, path: str, what: str) -> None:

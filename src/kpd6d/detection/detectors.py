@@ -19,7 +19,7 @@ from typing import Any
 import torch
 
 from kpd6d.detection.centernet import CenterNet
-from kpd6d.detection.detections import DetectionInputError, Detector
+from kpd6d.detection.detections import DetectionInputError, Detector, check_test_scales
 from kpd6d.detection.oracle import OracleDetector
 from kpd6d.detection.torchvision_detectors import TorchvisionDetector
 from kpd6d.io import to_plain
@@ -32,7 +32,7 @@ CHECKPOINT_KEY = "kpd6d_detector"
 FORMAT_VERSION = 1
 #: inference settings a loaded detector may be given instead of its checkpoint's (load_detector, the configs'
 #: ``detector_overrides``)
-INFERENCE_OVERRIDES = ("score_threshold", "max_detections", "one_per_object")
+INFERENCE_OVERRIDES = ("score_threshold", "max_detections", "one_per_object", "test_scales")
 #: constructor parameters that only say where initial weights come from
 _WEIGHT_PARAMS = ("backbone_weights_path", "weights_path", "backbone_pretrained")
 
@@ -124,7 +124,8 @@ def check_detector_overrides(value: Any, error: type[Exception] = ValueError,
                              key: str = "detector_overrides") -> dict:
     """A config's ``detector_overrides`` (None or a mapping of :data:`INFERENCE_OVERRIDES`) checked and
     without its null entries (null: the checkpoint's value): ``score_threshold`` in [0, 1],
-    ``max_detections`` a positive integer, ``one_per_object`` a boolean. ``error`` is raised naming ``key``."""
+    ``max_detections`` a positive integer, ``one_per_object`` a boolean, ``test_scales`` a list of input-size
+    factors (:meth:`Detector.set_test_scales`). ``error`` is raised naming ``key``."""
     if value is None:
         return {}
     if not isinstance(value, Mapping):
@@ -143,6 +144,8 @@ def check_detector_overrides(value: Any, error: type[Exception] = ValueError,
         elif k == "max_detections":
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise error(f"{key}.max_detections must be a positive integer, got {v!r}")
+        elif k == "test_scales":
+            v = list(check_test_scales(v, error, f"{key}.test_scales"))
         elif not isinstance(v, bool):
             raise error(f"{key}.one_per_object must be true or false, got {v!r}")
         out[k] = v
@@ -155,7 +158,7 @@ def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None,
 
     ``obj_ids``: the objects you need; a checkpoint trained for other objects raises a clear error.
     ``overrides`` replace inference settings (``score_threshold``, ``max_detections``,
-    ``one_per_object``).
+    ``one_per_object``, ``test_scales``).
     """
     path = Path(path)
     if not path.is_file():
@@ -176,6 +179,7 @@ def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None,
             raise DetectionInputError(f"detector checkpoint {str(path)!r} was trained for obj_ids {have}; "
                                       f"it cannot detect requested obj_ids {missing}")
     overrides = check_detector_overrides(overrides, DetectionInputError, "load_detector overrides")
+    test_scales = overrides.pop("test_scales", None)  # an inference setting of the Detector, not a constructor parameter
     params = dict(rec["params"])
     for k in _WEIGHT_PARAMS:  # the weights come from the checkpoint: no file or package is consulted
         params.pop(k, None)
@@ -193,5 +197,6 @@ def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None,
     # the rebuilt spec (defaults resolved) with the record's weight paths, which were not rebuilt
     det._spec["params"].update(to_plain({k: rec["params"][k] for k in _WEIGHT_PARAMS if k in rec["params"]}))
     det.box_stats = rec.get("box_stats")
+    det.set_test_scales(test_scales)
     det.to(map_location if isinstance(map_location, (str, torch.device)) else "cpu")
     return det.eval()

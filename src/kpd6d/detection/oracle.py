@@ -20,6 +20,7 @@ __all__ = ["OracleDetector"]
 
 class OracleDetector(Detector):
     trainable = False
+    rescalable = False
 
     def __init__(self, obj_ids: Sequence[int] | None = None, scale_sigma: float = 0.0, shift_sigma: float = 0.0,
                  seed: int = 0, score_threshold: float = 0.0, max_detections: int = 100,

@@ -89,6 +89,8 @@ def build_fpn_backbone(backbone: str, levels: str, weights_path: str | None = No
 class TorchvisionDetector(Detector):
     """A torchvision detection model (``kind`` = ``fcos`` or ``faster_rcnn``) behind the common API."""
 
+    rescalable = False  # torchvision's transform resizes every image to min_size / max_size itself
+
     def __init__(self, kind: str, obj_ids: Sequence[int] | None = None, backbone: str = "resnet18",
                  input_size: Sequence[int] | None = (320, 240), score_threshold: float = 0.1,
                  max_detections: int = 100, one_per_object: bool = False, backbone_weights_path: str | None = None,

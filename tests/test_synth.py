@@ -367,6 +367,42 @@ def test_photometric_effects():
         PhotometricConfig.from_mapping({"blurr": 1})
 
 
+def test_camera_exposure_and_saturation_against_direct_formulas():
+    from kpd6d.synth.photometric import (
+        PhotometricConfig,
+        _log_uniform,
+        apply_photometric,
+        camera_exposure_saturation,
+    )
+
+    img = np.random.default_rng(1).integers(0, 256, (30, 40, 3), dtype=np.uint8)
+    assert camera_exposure_saturation(img) is img
+    # exposure: linear light x e, through the 2.2 power curve both ways, clipped at white
+    x = img.astype(np.float64) / 255
+    want = np.clip((x ** 2.2 * 2.0) ** (1 / 2.2), 0, 1) * 255
+    got = camera_exposure_saturation(img, exposure=2.0)
+    assert np.abs(got - want).max() <= 0.5 + 1e-6 and (got[img >= 200] == 255).all()
+    # saturation: grey stays grey; 0 gives the luma; 2 doubles the chroma (a pixel by hand)
+    grey = np.full((2, 2, 3), 90, np.uint8)
+    assert np.array_equal(camera_exposure_saturation(grey, saturation=1.7), grey)
+    px = np.array([[[200, 100, 50]]], np.uint8)
+    luma = 0.299 * 200 + 0.587 * 100 + 0.114 * 50  # 124.2
+    assert camera_exposure_saturation(px, saturation=0.0).ravel().tolist() == [round(luma)] * 3
+    assert camera_exposure_saturation(px, saturation=2.0).ravel().tolist() == [
+        min(255, max(0, round(luma + 2 * (c - luma)))) for c in (200, 100, 50)]
+    # a degenerate range draws nothing, so the default settings keep every earlier dataset's random stream
+    rng = np.random.default_rng(3)
+    state = rng.bit_generator.state
+    assert _log_uniform(rng, (1.0, 1.0)) == 1.0 and rng.bit_generator.state == state
+    draws = [_log_uniform(rng, (0.5, 2.0)) for _ in range(200)]
+    assert 0.5 <= min(draws) and max(draws) <= 2.0 and 0.7 < float(np.exp(np.mean(np.log(draws)))) < 1.4
+    cfg = PhotometricConfig.from_mapping({"prob": 0.0001, "exposure": [3.0, 3.0]})  # no blur / colour / noise
+    assert np.array_equal(apply_photometric(img, np.random.default_rng(0), cfg), camera_exposure_saturation(img, 3.0))
+    for bad in ({"exposure": [0, 2]}, {"saturation": [1.5, 1.0]}):
+        with pytest.raises(ValueError, match=r"photometric\.(exposure|saturation) must be \[low, high\] with 0 < low <= high"):
+            PhotometricConfig.from_mapping(bad)
+
+
 def test_procedural_backgrounds_vary_and_are_deterministic():
     from kpd6d.synth.backgrounds import procedural_background
 

@@ -55,7 +55,11 @@ def photometric_settings(cfg: Mapping | None) -> dict:
     """``cfg`` (PhotometricConfig fields, or {} / None for the defaults) validated and spelt out in full
     as plain JSON values: the form SynthConfig holds and dataset_info.json records."""
     pc = PhotometricConfig.from_mapping(dict(cfg or {}) if not isinstance(cfg, PhotometricConfig) else cfg)
-    return {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(pc).items()}
+    out = {k: list(v) if isinstance(v, tuple) else v for k, v in asdict(pc).items()}
+    for k in ("exposure", "saturation"):  # later options stay out while at their defaults (earlier datasets resume)
+        if out[k] == [1.0, 1.0]:
+            del out[k]
+    return out
 
 
 @dataclass

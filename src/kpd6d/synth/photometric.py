@@ -1,7 +1,11 @@
-"""Photometric effects applied to the composite image (after pasting): blur, noise, colour shift.
+"""Photometric effects applied to the composite image (after pasting): blur, camera exposure and
+saturation, colour shift, noise.
 
-Each effect is applied with probability ``prob`` (independently), with strengths drawn from the
-configured ranges. ``prob: 0`` turns them off (e.g. to leave them to GPU augmentation in training).
+Blur, colour shift and noise are each applied with probability ``prob`` (independently), with
+strengths drawn from the configured ranges. ``exposure`` and ``saturation`` model the camera that
+took the picture, so every image gets one drawn from its range (log-uniform); their default range
+``(1, 1)`` leaves images (and the random stream) as before. ``prob: 0`` turns everything off (e.g.
+to leave it to GPU augmentation in training).
 """
 
 from __future__ import annotations
@@ -11,7 +15,7 @@ from dataclasses import dataclass, fields
 
 import numpy as np
 
-__all__ = ["PhotometricConfig", "apply_photometric"]
+__all__ = ["PhotometricConfig", "apply_photometric", "camera_exposure_saturation"]
 
 
 @dataclass(frozen=True)
@@ -22,6 +26,8 @@ class PhotometricConfig:
     brightness: float = 0.15  # additive shift, fraction of 255, +-
     contrast: tuple[float, float] = (0.8, 1.2)  # multiplicative about the mean
     channel_gain: float = 0.08  # per-channel gain (colour cast), +-
+    exposure: tuple[float, float] = (1.0, 1.0)  # camera exposure: a gain on linear intensity (2 = one stop brighter), clipped
+    saturation: tuple[float, float] = (1.0, 1.0)  # chroma x this about each pixel's luma (1: as rendered)
 
     @classmethod
     def from_mapping(cls, cfg: Mapping | None) -> PhotometricConfig:
@@ -37,6 +43,10 @@ class PhotometricConfig:
         out = cls(**kw)
         if not 0.0 <= out.prob <= 1.0:
             raise ValueError(f"photometric.prob must lie in [0, 1], got {out.prob}")
+        for name in ("exposure", "saturation"):
+            lo, hi = getattr(out, name)
+            if not 0.0 < lo <= hi:
+                raise ValueError(f"photometric.{name} must be [low, high] with 0 < low <= high, got {[lo, hi]}")
         return out
 
 
@@ -50,6 +60,7 @@ def apply_photometric(img: np.ndarray, rng: np.random.Generator, cfg: Photometri
     out = img
     if do_blur:
         out = cv2.GaussianBlur(out, (0, 0), float(rng.uniform(*cfg.blur_sigma)))
+    out = camera_exposure_saturation(out, _log_uniform(rng, cfg.exposure), _log_uniform(rng, cfg.saturation))
     if do_color:
         gain = float(rng.uniform(*cfg.contrast)) * (1.0 + rng.uniform(-cfg.channel_gain, cfg.channel_gain, 3))
         bias = rng.uniform(-cfg.brightness, cfg.brightness) * 255.0
@@ -64,3 +75,29 @@ def apply_photometric(img: np.ndarray, rng: np.random.Generator, cfg: Photometri
         cv2.randn(noise, 0.0, sigma)
         out = cv2.add(out, cv2.merge([noise, noise, noise]), dtype=cv2.CV_8U)
     return np.ascontiguousarray(out)
+
+
+def _log_uniform(rng: np.random.Generator, bounds: tuple[float, float]) -> float:
+    """A factor log-uniform in ``bounds``; a degenerate range draws nothing (the stream stays as it was)."""
+    lo, hi = bounds
+    return float(lo) if lo == hi else float(np.exp(rng.uniform(np.log(lo), np.log(hi))))
+
+
+def camera_exposure_saturation(img: np.ndarray, exposure: float = 1.0, saturation: float = 1.0) -> np.ndarray:
+    """An sRGB uint8 image as a camera with ``exposure`` x the light would record it (linear intensity
+    x ``exposure``; with the sRGB curve taken as the power 2.2 that is a gain of ``exposure ** (1 / 2.2)``
+    on the stored values, clipped at white), then its chroma scaled by ``saturation`` about each pixel's
+    luma (Rec. 601 weights). Factors of 1 return ``img`` itself."""
+    import cv2
+
+    out = img
+    if exposure != 1.0:
+        gain = float(exposure) ** (1.0 / 2.2)
+        lut = np.clip(np.arange(256) * gain + 0.5, 0, 255).astype(np.uint8)
+        out = cv2.LUT(out, lut)
+    if saturation != 1.0:
+        f = out.astype(np.float32)
+        luma = f @ np.array([0.299, 0.587, 0.114], np.float32)
+        f = luma[..., None] + float(saturation) * (f - luma[..., None])
+        out = np.clip(f + 0.5, 0, 255).astype(np.uint8)
+    return out

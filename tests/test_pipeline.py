@@ -363,6 +363,62 @@ def test_candidates_keep_the_pose_the_keypoints_verify():
         PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt), candidates=0, device="cpu")
 
 
+class RecordingDecoyKPD(DecoyAwareKPD):
+    """DecoyAwareKPD that records the boxes of every call."""
+
+    def __init__(self, *a):
+        super().__init__(*a)
+        self.boxes_seen = []
+
+    def predict_keypoints(self, images, boxes, image_index, obj_ids):
+        self.boxes_seen.append((boxes.cpu().numpy().astype(np.float64), obj_ids.tolist()))
+        return super().predict_keypoints(images, boxes, image_index, obj_ids)
+
+
+def test_verify_crops_verifies_with_few_crops_then_estimates_the_kept_with_crop_tta():
+    """candidates {per_object: 2, verify_crops: 1} with crop_tta 3: one KPD call on every candidate box
+    (one crop each), then one on the kept boxes' 3 crops (tta_boxes); the picks are those of crop_tta 1
+    and the poses those of crop_tta 3 on the kept boxes (predict_boxes), each keeping its candidate count."""
+    from kpd6d.pnp.estimator import candidates_record, check_candidates, tta_boxes
+
+    kp3d, gt, targets = _scene(np.random.default_rng(5))
+    true_boxes = {(b, int(o)): box for b, t in enumerate(targets) for box, o in zip(t["boxes"], t["obj_ids"])}
+    decoy = np.array([500.0, 380.0, 90.0, 80.0])
+    t0 = targets[0]
+    with_decoy = [{"boxes": np.vstack([decoy, t0["boxes"]]), "obj_ids": np.concatenate([[1], t0["obj_ids"]]),
+                   "scores": np.concatenate([[0.99], t0["scores"]])}, targets[1]]
+
+    def pipe(candidates, crop_tta):
+        kpd = RecordingDecoyKPD(kp3d, gt, true_boxes)
+        return PosePipeline(DETECTORS.build("oracle", one_per_object=False), kpd, pnp="sqpnp", top_l=None,
+                            device="cpu", candidates=candidates, crop_tta=crop_tta), kpd
+
+    fast, kpd = pipe({"per_object": 2, "verify_crops": 1}, 3)
+    got = fast.predict_batch(_images(), LINEMOD_K, with_decoy)
+    ref = pipe(2, 1)[0].predict_batch(_images(), LINEMOD_K, with_decoy)
+    assert len(kpd.boxes_seen) == 2
+    all_boxes = np.concatenate([t["boxes"] for t in with_decoy])
+    np.testing.assert_allclose(kpd.boxes_seen[0][0], all_boxes, atol=1e-4)  # every candidate, one crop
+    kept = [p for ps in got for p in ps]
+    assert [(p["obj_id"], p["score"]) for ps in got for p in ps] == [(p["obj_id"], p["score"]) for ps in ref for p in ps]
+    np.testing.assert_allclose(kpd.boxes_seen[1][0], tta_boxes(np.stack([p["box"] for p in kept]), 3), atol=1e-4)
+    assert [p["candidates"] for p in kept] == [p["candidates"] for ps in ref for p in ps] and max(
+        p["candidates"] for p in kept) == 2
+    direct = pipe(1, 3)[0].predict_boxes(_images(), LINEMOD_K, np.stack([p["box"] for p in kept]),
+                                         [p["obj_id"] for p in kept], [b for b, ps in enumerate(got) for _ in ps],
+                                         [p["score"] for p in kept])
+    for a, b in zip(kept, [p for ps in direct for p in ps]):
+        np.testing.assert_allclose(a["R"], b["R"], atol=1e-9)
+        np.testing.assert_allclose(a["t"], b["t"], atol=1e-6)
+        assert a["confidence"] == pytest.approx(b["confidence"])
+    assert fast.last_timings["kpd"] > 0
+    assert check_candidates({"per_object": 5, "verify_crops": 1}) == (5, 0, 1.0, 1)
+    assert candidates_record(5, 0, 1.0, 1) == {"per_object": 5, "verify_crops": 1}
+    for bad in (0, 10, 1.5):
+        with pytest.raises(ValueError, match=r"candidates.verify_crops must be an integer (>= 1|from 1 to 9)"):
+            check_candidates({"per_object": 2, "verify_crops": bad})
+
+
 def test_candidate_rank_weighs_the_detection_score():
     """best_candidates ranks an object's candidates by pose confidence x detection score ** w: w = 0
     is the pose confidence alone, w = 1 (the default) the product, a large w the detector's order;
@@ -393,7 +449,7 @@ def test_candidate_rank_weighs_the_detection_score():
         [{"obj_id": 3, "score": 0.2, "confidence": 0.5}, {"obj_id": 3, "score": 0.4, "confidence": 0.25}], 1.0
     )[0]["score"] == 0.4
 
-    assert check_candidates({"per_object": 5, "detector_weight": 0}) == (5, 0, 0.0)
+    assert check_candidates({"per_object": 5, "detector_weight": 0}) == (5, 0, 0.0, None)
     assert candidates_record(5, 0, 1.0) == 5 and candidates_record(5, 0, 0.0) == {"per_object": 5, "detector_weight": 0.0}
     assert candidates_record(*check_candidates({"per_object": 2, "any_class": 1, "detector_weight": 2})) == {
         "per_object": 2, "any_class": 1, "detector_weight": 2.0}
@@ -402,7 +458,7 @@ def test_candidate_rank_weighs_the_detection_score():
     for bad in (-1, float("nan"), "high", True):
         with pytest.raises(ValueError, match=r"evaluate.candidates.detector_weight must be a finite number >= 0, got"):
             check_candidates({"per_object": 2, "detector_weight": bad}, key="evaluate.candidates")
-    with pytest.raises(ValueError, match=r"known: \['any_class', 'detector_weight', 'per_object'\]"):
+    with pytest.raises(ValueError, match=r"known: \['any_class', 'detector_weight', 'per_object', 'verify_crops'\]"):
         check_candidates({"weight": 1})
 
 
@@ -464,8 +520,8 @@ def test_any_class_candidates_recover_a_misclassified_object():
     dets = [{"image_index": 0, "obj_id": o, "score": s, "box": [s] * 4} for o, s in ((1, 0.9), (2, 0.5), (2, 0.4))]
     got = [(d["obj_id"], d["score"]) for d in top_candidates(dets, 1, any_class=2, obj_ids=[1, 2, 3])]
     assert got == [(1, 0.9), (2, 0.5), (2, 0.9), (3, 0.9), (1, 0.5), (3, 0.5)]
-    assert check_candidates(None) == (1, 0, 1.0) and check_candidates(4) == (4, 0, 1.0)
-    assert check_candidates({"any_class": 2}) == (1, 2, 1.0) and candidates_record(1, 2) == {"per_object": 1, "any_class": 2}
+    assert check_candidates(None) == (1, 0, 1.0, None) and check_candidates(4) == (4, 0, 1.0, None)
+    assert check_candidates({"any_class": 2}) == (1, 2, 1.0, None) and candidates_record(1, 2) == {"per_object": 1, "any_class": 2}
     assert candidate_options({"per_object": 1, "any_class": 2}, "det.pt") == {
         "candidates": {"per_object": 1, "any_class": 2}, "one_per_object": False}
     assert candidate_options({"per_object": 3, "any_class": 0}, "det.pt") == {"candidates": 3, "one_per_object": False}

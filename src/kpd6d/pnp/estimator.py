@@ -134,6 +134,8 @@ class CandidateSpec(NamedTuple):
     per_object: int = 1  # the n highest-scoring boxes of each object go through KPD + PnP
     any_class: int = 0  # and the image's m best boxes of any class, as every object
     detector_weight: float = DETECTOR_WEIGHT  # a candidate's rank: pose confidence x detection score ** this
+    verify_crops: int | None = None  # KPD crops per candidate while verifying (None: crop_tta's); the kept
+    #                                  pose is then estimated again with crop_tta crops
 
     @property
     def verifies(self) -> bool:
@@ -143,10 +145,10 @@ class CandidateSpec(NamedTuple):
 
 def check_candidates(candidates: Any, error: type[Exception] = ValueError,
                      key: str = "candidates") -> CandidateSpec:
-    """``candidates`` as a :class:`CandidateSpec`: an int n >= 1 is ``(n, 0, DETECTOR_WEIGHT)`` (None:
-    ``(1, 0, DETECTOR_WEIGHT)``); a mapping ``{per_object: n, any_class: m, detector_weight: w}`` (n >= 1,
-    m >= 0, w >= 0, finite; any may be left out) gives all three. Anything else raises ``error``
-    naming ``key`` and the value."""
+    """``candidates`` as a :class:`CandidateSpec`: an int n >= 1 is ``(n, 0, DETECTOR_WEIGHT, None)`` (None:
+    ``(1, 0, DETECTOR_WEIGHT, None)``); a mapping ``{per_object: n, any_class: m, detector_weight: w,
+    verify_crops: c}`` (n >= 1, m >= 0, w >= 0 finite, c from 1 to len(CROP_TTA_JITTER) or None; any may be
+    left out) gives all four. Anything else raises ``error`` naming ``key`` and the value."""
     def count(v, low: int, name: str) -> int:
         if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low:
             raise error(f"{name} must be an integer >= {low}, got {v!r}")
@@ -162,21 +164,28 @@ def check_candidates(candidates: Any, error: type[Exception] = ValueError,
         w = spec.get("detector_weight", DETECTOR_WEIGHT)
         if isinstance(w, bool) or not _is_number(w) or not (math.isfinite(float(w)) and float(w) >= 0):
             raise error(f"{key}.detector_weight must be a finite number >= 0, got {w!r}")
+        c = spec.get("verify_crops")
+        if c is not None and (count(c, 1, f"{key}.verify_crops") > len(CROP_TTA_JITTER)):
+            raise error(f"{key}.verify_crops must be an integer from 1 to {len(CROP_TTA_JITTER)}, got {c!r}")
         return CandidateSpec(count(spec.get("per_object", 1), 1, f"{key}.per_object"),
-                             count(spec.get("any_class", 0), 0, f"{key}.any_class"), float(w))
+                             count(spec.get("any_class", 0), 0, f"{key}.any_class"), float(w),
+                             None if c is None else int(c))
     return CandidateSpec(count(candidates, 1, key))
 
 
-def candidates_record(per_object: int, any_class: int = 0, detector_weight: float = DETECTOR_WEIGHT) -> Any:
+def candidates_record(per_object: int, any_class: int = 0, detector_weight: float = DETECTOR_WEIGHT,
+                      verify_crops: int | None = None) -> Any:
     """The plain value of a candidates setting: n, or the mapping of the keys that differ from n's
-    defaults (``{per_object: n, any_class: m, detector_weight: w}``)."""
-    if any_class == 0 and detector_weight == DETECTOR_WEIGHT:
+    defaults (``{per_object: n, any_class: m, detector_weight: w, verify_crops: c}``)."""
+    if any_class == 0 and detector_weight == DETECTOR_WEIGHT and verify_crops is None:
         return int(per_object)
     out: dict[str, Any] = {"per_object": int(per_object)}
     if any_class:
         out["any_class"] = int(any_class)
     if detector_weight != DETECTOR_WEIGHT:
         out["detector_weight"] = float(detector_weight)
+    if verify_crops is not None:
+        out["verify_crops"] = int(verify_crops)
     return out
 
 
@@ -347,10 +356,13 @@ class PoseEstimatorBase:
         if spec.verifies:
             dets = top_candidates(dets, spec.per_object, spec.any_class, sorted(self.kpd.keypoints_3d))
         t1 = time.perf_counter()
+        crops = spec.verify_crops if spec.verifies and spec.verify_crops is not None else self.crop_tta
         out = self._estimate(x, Ks, [d["box"] for d in dets], [d["image_index"] for d in dets],
-                             [d["obj_id"] for d in dets], [d["score"] for d in dets])
+                             [d["obj_id"] for d in dets], [d["score"] for d in dets], crops)
         if spec.verifies:
             out = [best_candidates(poses, spec.detector_weight) for poses in out]
+            if crops != self.crop_tta:  # the kept candidates again, with crop_tta crops
+                out = self._reestimate(x, Ks, out)
         self.last_timings["detect"] = t1 - t0
         self.last_timings["total"] = time.perf_counter() - t0
         return out
@@ -402,9 +414,21 @@ class PoseEstimatorBase:
                     flat.append({"box": box, "image_index": b, "obj_id": int(oid), "score": float(s)})
         return flat
 
+    def _reestimate(self, x, Ks: np.ndarray, poses: list[list[dict]]) -> list[list[dict]]:
+        """``poses`` (per image) estimated again from their boxes with ``crop_tta`` crops, in the same
+        order, each keeping its candidate count; ``last_timings`` adds up both estimates."""
+        before = dict(self.last_timings)
+        flat = [(b, p) for b, ps in enumerate(poses) for p in ps]
+        out = self._estimate(x, Ks, [p["box"] for _, p in flat], [b for b, _ in flat], [p["obj_id"] for _, p in flat],
+                             [p["score"] for _, p in flat])
+        for k in ("kpd", "pnp", "total"):
+            self.last_timings[k] += before.get(k, 0.0)
+        return [[{**q, "candidates": p["candidates"]} for q, p in zip(new, old)] for new, old in zip(out, poses)]
+
     def _estimate(self, x, Ks: np.ndarray, boxes: list, img_idx: list[int], obj_ids: list[int],
-                  scores: list[float]) -> list[list[dict]]:
-        """keypoints -> top-l -> PnP (``refine_boxes`` more times) on ``boxes``; sets ``last_timings``."""
+                  scores: list[float], crop_tta: int | None = None) -> list[list[dict]]:
+        """keypoints -> top-l -> PnP (``refine_boxes`` more times) on ``boxes`` (``crop_tta`` crops each;
+        None: the pipeline's); sets ``last_timings``."""
         out: list[list[dict]] = [[] for _ in range(self._num_images(x))]
         if not boxes:
             self.last_timings = {"detect": 0.0, "kpd": 0.0, "pnp": 0.0, "total": 0.0}
@@ -418,7 +442,7 @@ class PoseEstimatorBase:
         t_kpd = t_pnp = 0.0
         for it in range(self.refine_boxes + 1):
             ta = time.perf_counter()
-            kp2d, conf = self._crop_keypoints(x, scale_boxes(cur, self.box_scale), idx, obj_ids)
+            kp2d, conf = self._crop_keypoints(x, scale_boxes(cur, self.box_scale), idx, obj_ids, crop_tta)
             tb = time.perf_counter()
             if pts3d.shape[1] != kp2d.shape[1]:
                 raise self.input_error(f"KPD returned {kp2d.shape[1]} keypoints but keypoints_3d has "
@@ -435,10 +459,10 @@ class PoseEstimatorBase:
         self.last_timings = {"detect": 0.0, "kpd": t_kpd, "pnp": t_pnp, "total": t_kpd + t_pnp}
         return out
 
-    def _crop_keypoints(self, x, boxes: np.ndarray, idx: np.ndarray, obj_ids: list[int]):
-        """``_keypoints`` on ``boxes``; with ``crop_tta`` n > 1 one KPD call on n crops of each box
+    def _crop_keypoints(self, x, boxes: np.ndarray, idx: np.ndarray, obj_ids: list[int], n: int | None = None):
+        """``_keypoints`` on ``boxes``; with n (None: ``crop_tta``) > 1 one KPD call on n crops of each box
         (:func:`tta_boxes`), combined by :func:`combine_tta`."""
-        n = self.crop_tta
+        n = self.crop_tta if n is None else int(n)
         if n == 1:
             return self._keypoints(x, boxes, idx, obj_ids)
         kp2d, conf = self._keypoints(x, tta_boxes(boxes, n), np.tile(idx, n), list(obj_ids) * n)

@@ -136,7 +136,8 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     # inference settings chosen on synthetic validation: RANSAC + SQPnP refit on all keypoints, depth calibration
     assert full.pnp.name == "sqpnp_ransac" and full.pnp.relative_error == 0.2
     assert full.select.top_l is None and full.evaluate.depth_calibration == "auto"
-    assert full.evaluate.candidates == 5 and full.detector.one_per_object
+    assert full.evaluate.candidates == {"per_object": 5, "verify_crops": 1} and full.detector.one_per_object
+    assert full.evaluate.detector_overrides.test_scales == [1, 1.5]
     assert full.data.options.palette == "natural" and full.data.options.distractor_refresh == 100
 
     run = tmp_path / "run"
@@ -147,7 +148,8 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
         assert (run / f).is_file(), f
     assert m["mean"]["n"] > 0 and m["oracle_boxes"]["mean"]["n"] > 0
     # the detector's inference override reaches the evaluation with the own detector (not the oracle's)
-    assert json.loads((run / "eval" / "settings.json").read_text())["detector_overrides"] == {"score_threshold": 0.05}
+    assert json.loads((run / "eval" / "settings.json").read_text())["detector_overrides"] == {
+        "score_threshold": 0.05, "test_scales": [1.0, 1.5]}
     assert "detector_overrides" not in json.loads((run / "eval_oracle" / "settings.json").read_text())
     assert 0.0 <= m["mean"]["ar_mspd"] <= 1.0
     # the detector's own AP on the real frames, per object, in metrics.json and the report

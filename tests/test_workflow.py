@@ -126,7 +126,8 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
         full = compose("run", overrides=["experiment=lmo", f"objects.models_dir={lmo_dir / 'models'}",
                                          f"evaluate.data_root={lmo_dir}"])
         cfg = compose("run", overrides=[*LMO_TINY, f"objects.models_dir={lmo_dir / 'models'}",
-                                        f"evaluate.data_root={lmo_dir}", "evaluate.detector_overrides.score_threshold=0.05"])
+                                        f"evaluate.data_root={lmo_dir}", "evaluate.detector_overrides.score_threshold=0.05",
+                                        "evaluate.detector_overrides.test_scales=[1,1.5]"])
     # the recipe itself: 8 objects, 50 SIFT keypoints (17 on the eggbox), table-top scenes, pretrained backbones
     assert full.objects.obj_ids == [1, 5, 6, 8, 9, 10, 11, 12] and full.designator.name == "sift"
     assert full.designator.num_keypoints == 50 and full.designator_per_object[10].symmetry_aware
@@ -137,7 +138,7 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     assert full.pnp.name == "sqpnp_ransac" and full.pnp.relative_error == 0.2
     assert full.select.top_l is None and full.evaluate.depth_calibration == "auto"
     assert full.evaluate.candidates == {"per_object": 5, "verify_crops": 1} and full.detector.one_per_object
-    assert full.evaluate.detector_overrides.test_scales == [1, 1.5]
+    assert full.evaluate.detector_overrides.test_scales is None
     assert full.data.options.palette == "natural" and full.data.options.distractor_refresh == 100
 
     run = tmp_path / "run"

@@ -140,11 +140,13 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     assert full.evaluate.candidates == {"per_object": 5, "verify_crops": 1} and full.detector.one_per_object
     assert full.evaluate.detector_overrides.test_scales is None
     assert full.data.options.palette == "natural" and full.data.options.distractor_refresh == 100
+    assert full.data.options.photometric == {"exposure": [0.7, 2.5], "saturation": [0.8, 1.5]}
 
     run = tmp_path / "run"
     m = run_experiment(cfg, run)
     info = json.loads((run / "data" / "dataset_info.json").read_text())
     assert info["splits"]["train"]["config"]["layout"] == "tabletop"
+    assert info["splits"]["train"]["config"]["photometric"]["exposure"] == [0.7, 2.5]  # the camera reached the generator
     for f in ("eval/results.csv", "eval/report.md", "eval_oracle/results.csv", "eval_oracle/report.md"):
         assert (run / f).is_file(), f
     assert m["mean"]["n"] > 0 and m["oracle_boxes"]["mean"]["n"] > 0

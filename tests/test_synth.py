@@ -398,7 +398,7 @@ def test_camera_exposure_and_saturation_against_direct_formulas():
     assert 0.5 <= min(draws) and max(draws) <= 2.0 and 0.7 < float(np.exp(np.mean(np.log(draws)))) < 1.4
     cfg = PhotometricConfig.from_mapping({"prob": 0.0001, "exposure": [3.0, 3.0]})  # no blur / colour / noise
     assert np.array_equal(apply_photometric(img, np.random.default_rng(0), cfg), camera_exposure_saturation(img, 3.0))
-    for bad in ({"exposure": [0, 2]}, {"saturation": [1.5, 1.0]}):
+    for bad in ({"exposure": [0, 2]}, {"saturation": [1.5, 1.0]}, {"exposure": 2.0}, {"saturation": ["a", 1]}):
         with pytest.raises(ValueError, match=r"photometric\.(exposure|saturation) must be \[low, high\] with 0 < low <= high"):
             PhotometricConfig.from_mapping(bad)
 

@@ -44,7 +44,11 @@ class PhotometricConfig:
         if not 0.0 <= out.prob <= 1.0:
             raise ValueError(f"photometric.prob must lie in [0, 1], got {out.prob}")
         for name in ("exposure", "saturation"):
-            lo, hi = getattr(out, name)
+            v = getattr(out, name)
+            try:
+                lo, hi = (float(x) for x in v)
+            except (TypeError, ValueError):
+                raise ValueError(f"photometric.{name} must be [low, high] with 0 < low <= high, got {v!r}") from None
             if not 0.0 < lo <= hi:
                 raise ValueError(f"photometric.{name} must be [low, high] with 0 < low <= high, got {[lo, hi]}")
         return out

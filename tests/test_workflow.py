@@ -141,6 +141,7 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     assert full.evaluate.detector_overrides.test_scales is None
     assert full.data.options.palette == "natural" and full.data.options.distractor_refresh == 100
     assert full.data.options.photometric == {"exposure": [0.7, 2.5], "saturation": [0.8, 1.5]}
+    assert full.kpd_stage.kpd.finetune.freeze_stages == 2 and not full.kpd_stage.kpd.finetune.freeze_bn
 
     run = tmp_path / "run"
     m = run_experiment(cfg, run)

@@ -165,11 +165,9 @@ def check_candidates(candidates: Any, error: type[Exception] = ValueError,
         if isinstance(w, bool) or not _is_number(w) or not (math.isfinite(float(w)) and float(w) >= 0):
             raise error(f"{key}.detector_weight must be a finite number >= 0, got {w!r}")
         c = spec.get("verify_crops")
-        if c is not None and (count(c, 1, f"{key}.verify_crops") > len(CROP_TTA_JITTER)):
-            raise error(f"{key}.verify_crops must be an integer from 1 to {len(CROP_TTA_JITTER)}, got {c!r}")
         return CandidateSpec(count(spec.get("per_object", 1), 1, f"{key}.per_object"),
                              count(spec.get("any_class", 0), 0, f"{key}.any_class"), float(w),
-                             None if c is None else int(c))
+                             None if c is None else _crop_count(c, f"{key}.verify_crops", error))
     return CandidateSpec(count(candidates, 1, key))
 
 
@@ -256,6 +254,13 @@ def best_candidates(poses: list[dict], detector_weight: float = DETECTOR_WEIGHT)
     return [{**p, "candidates": n[p["obj_id"]]} for _, p in sorted(best.values(), key=lambda kp: -kp[1]["score"])]
 
 
+def _crop_count(v, name: str, error: type[Exception]) -> int:
+    """A number of test-time crops: an integer from 1 to len(CROP_TTA_JITTER), else ``error`` naming ``name``."""
+    if isinstance(v, bool) or not isinstance(v, int | np.integer) or not 1 <= int(v) <= len(CROP_TTA_JITTER):
+        raise error(f"{name} must be an integer from 1 to {len(CROP_TTA_JITTER)}, got {v!r}")
+    return int(v)
+
+
 def _positive_number(v, name: str, error: type[Exception]) -> float:
     """``float(v)`` when it is finite and > 0; else ``error`` naming ``name`` and the value."""
     try:
@@ -299,10 +304,7 @@ class PoseEstimatorBase:
                      depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1) -> None:
         """Check and keep the settings both pipelines take."""
         err = self.input_error
-        if isinstance(crop_tta, bool) or not isinstance(crop_tta, (int, np.integer)) \
-                or not 1 <= int(crop_tta) <= len(CROP_TTA_JITTER):
-            raise err(f"crop_tta must be an integer from 1 to {len(CROP_TTA_JITTER)}, got {crop_tta!r}")
-        self.crop_tta = int(crop_tta)
+        self.crop_tta = _crop_count(crop_tta, "crop_tta", err)
         self.candidate_spec = check_candidates(candidates, err)
         self.depth_calibration_default, self.depth_calibration_per_object = parse_depth_calibration(depth_calibration, err)
         self.box_scale = _positive_number(box_scale, "box_scale", err)

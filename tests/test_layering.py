@@ -6,7 +6,7 @@ Layers, lowest first (a "unit" is a top-level module ``kpd6d/X.py`` or a subpack
 
     L0  io, geometry, registry, config, paths    file I/O, conventions, the registry tables, settings
     L1  objects, symmetry, render, pnp, visualize, pretrained, schedules, ema, finetune, box_errors
-    L2  training                                 the trainer/checkpoint/optimizer setup of both stages
+    L2  training, refinement                     the trainer/checkpoint/optimizer setup of both stages; pose refinement
     L3  keypoints
     L4  data, synth                              BOP datasets; the generator that writes them
     L5  evaluation, detection, kpd               metrics; the two trained stages
@@ -59,7 +59,7 @@ LAYERS: list[tuple[str, ...]] = [
     ("io", "geometry", "registry", "config", "paths"),
     ("objects", "symmetry", "render", "pnp", "visualize", "pretrained", "schedules", "ema", "finetune",
      "box_errors", "distributed", "photo_augment"),
-    ("training",),
+    ("training", "refinement"),
     ("keypoints",),
     ("data", "synth"),
     ("evaluation", "detection", "kpd"),

@@ -598,3 +598,41 @@ def test_crop_tta_takes_the_median_of_the_crops_keypoints():
     for bad in (0, 10, 2.5, True, "3"):
         with pytest.raises(PipelineInputError, match="crop_tta must be an integer from 1 to 9"):
             PosePipeline(DETECTORS.build("oracle"), FakeKPD({}, {}), pnp="epnp", device="cpu", crop_tta=bad)
+
+
+class ShiftingRefiner:
+    """A pose refiner that records what it is given and moves every ok pose 5 mm along x."""
+
+    def __init__(self):
+        self.seen = []
+
+    def refine_poses(self, images, Ks, poses):
+        self.seen.append(([np.asarray(im).shape for im in images], np.asarray(Ks).shape,
+                          [[p["obj_id"] for p in ps] for ps in poses]))
+        for ps in poses:
+            for p in ps:
+                if p["ok"]:
+                    p["t"] = p["t"] + np.array([5.0, 0.0, 0.0])
+                    p["refined"] = True
+        return poses
+
+
+def test_a_refiner_runs_on_the_final_poses_of_predict_batch_and_predict_boxes():
+    kp3d, gt, targets = _scene(np.random.default_rng(0))
+    pipe = PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt), pnp="epnp", top_l=None, device="cpu")
+    plain = pipe.predict_batch(_images(), LINEMOD_K, targets)
+    ref = ShiftingRefiner()
+    pipe.set_refiner(ref)
+    out = pipe.predict_batch(_images(), LINEMOD_K, targets)
+    assert ref.seen == [([(480, 640, 3)] * 2, (2, 3, 3), [[1, 2], [3]])]  # once, on every image's poses
+    for a, b in zip(plain, out):
+        for p, q in zip(a, b):
+            np.testing.assert_allclose(q["t"] - p["t"], [5.0, 0.0, 0.0], atol=1e-9)
+            assert q["refined"] and "refined" not in p
+    assert "refine" in pipe.last_timings and pipe.last_timings["total"] >= pipe.last_timings["refine"]
+    boxes = pipe.predict_boxes(_images(), LINEMOD_K, targets[0]["boxes"], targets[0]["obj_ids"], [0, 0])
+    assert len(ref.seen) == 2 and all(p["refined"] for p in boxes[0])  # tracking's entry point too
+    pipe.set_refiner(None)
+    assert "refined" not in pipe.predict_batch(_images(), LINEMOD_K, targets)[0][0]
+    with pytest.raises(PipelineInputError, match=r"refiner must have \.refine_poses"):
+        pipe.set_refiner(object())

@@ -158,3 +158,9 @@ def test_cli_with_real_untrained_checkpoints(tmp_path, monkeypatch, capsys):
                                       f"hydra.run.dir={tmp_path / 'run1'}"])
     main()
     assert len(json.loads((tmp_path / "run1" / "poses.json").read_text())["frames"][0]["poses"]) == 1
+    # the region refiner needs meshes: without refiner.models_dir a clear error before any image is read
+    monkeypatch.setattr(sys, "argv", [*sys.argv[:-1], "refiner=region", f"hydra.run.dir={tmp_path / 'run2'}"])
+    with pytest.raises(SystemExit):
+        main()
+    assert "refiner.models_dir is required" in capsys.readouterr().err
+    assert not (tmp_path / "run2" / "poses.json").exists()

@@ -210,10 +210,10 @@ def test_broken_plugin_names_itself_and_is_retried(monkeypatch):
         reg.load_plugins()  # still loud on the next attempt
 
 
-def test_the_nine_registries_exist():
+def test_the_ten_registries_exist():
     assert set(REGISTRIES) == {"designator", "detector", "backbone", "head", "box_augment", "decoder", "codec",
-                               "pnp"}  # the conf/ groups
-    assert isinstance(SYMMETRIES, Registry)  # the ninth, without a group (handlers follow models_info)
+                               "pnp", "refiner"}  # the conf/ groups
+    assert isinstance(SYMMETRIES, Registry)  # the tenth, without a group (handlers follow models_info)
     from kpd6d.kpd.box_augment import BoxJitter
     from kpd6d.kpd.heads import FPNHead
     from kpd6d.registry import BOX_AUGMENTS, HEADS

@@ -212,6 +212,8 @@ def _pose_entry(p: dict) -> dict:
         e["source"] = p["source"]
     if "reason" in p:
         e["reason"] = str(p["reason"])
+    if "refined" in p:
+        e["refined"] = bool(p["refined"])
     return e
 
 
@@ -316,6 +318,7 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
     from kpd6d.detection.detectors import check_detector_overrides
     from kpd6d.pipeline import PosePipeline
     from kpd6d.pnp.estimator import candidate_options
+    from kpd6d.refinement import build_refiner
 
     backend = str(cfg.get("backend") or "torch")
     torch_backend = backend == "torch"  # the other backends run an export (export_dir=): no checkpoints needed
@@ -323,6 +326,7 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
     if str(det) == "oracle":
         raise ValueError("kpd6d-predict needs a trained detector (detector_ckpt=<file>): the oracle needs GT boxes")
     K = load_intrinsics(cfg.camera)
+    refiner = build_refiner(to_plain(cfg.get("refiner")))  # its meshes, or the error naming them, before the networks
     pipe = PosePipeline.for_backend(backend, detector_ckpt=det,
                                     kpd_ckpt=OmegaConf.select(cfg, "kpd_ckpt", default=None, throw_on_missing=torch_backend),
                                     export_dir=cfg.get("export_dir"), pnp=OmegaConf.to_container(cfg.pnp, resolve=True),
@@ -333,6 +337,7 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
                                     depth_calibration=to_plain(cfg.get("depth_calibration", 1.0)),
                                     **candidate_options(cfg.get("candidates", 1), det, ValueError,
                                                         check_detector_overrides(to_plain(cfg.get("detector_overrides")))))
+    pipe.set_refiner(refiner)
     max_frames = cfg.get("max_frames")
     return predict_inputs(pipe, cfg.input, K, out_dir, corners_from_kpd(pipe.kpd), batch_size=cfg_int(cfg, "batch_size"),
                           overlays=bool(cfg.overlays), progress=bool(cfg.progress),

@@ -1,4 +1,4 @@
-"""Plugin registries: one small generic :class:`Registry` and the nine registries of the library.
+"""Plugin registries: one small generic :class:`Registry` and the ten registries of the library.
 
 A registry maps a name to a factory. ``REGISTRY.build(name, **params)`` calls the factory; an
 unknown name raises :class:`UnknownNameError` listing the known names. Each Hydra config group in
@@ -28,6 +28,7 @@ __all__ = [
     "DETECTORS",
     "HEADS",
     "PNP_SOLVERS",
+    "REFINERS",
     "REGISTRIES",
     "SYMMETRIES",
     "Registry",
@@ -163,6 +164,7 @@ DECODERS = Registry("decoder", ("kpd6d.kpd.decoders",))
 CODECS = Registry("codec", ("kpd6d.kpd.codec",))
 PNP_SOLVERS = Registry("PnP solver", ("kpd6d.pnp",))
 SYMMETRIES = Registry("symmetry handler", ("kpd6d.symmetry",))
+REFINERS = Registry("pose refiner", ("kpd6d.refinement",))
 
 # config group in conf/ -> the registry its files build. SYMMETRIES has no group: an object's handler
 # follows from its models_info symmetries (kpd6d.symmetry.handler_for_model).
@@ -175,6 +177,7 @@ REGISTRIES: dict[str, Registry] = {
     "decoder": DECODERS,
     "codec": CODECS,
     "pnp": PNP_SOLVERS,
+    "refiner": REFINERS,
 }
 
 _plugins_loaded = False

@@ -210,8 +210,14 @@ class Renderer:
 
     def close(self) -> None:
         if getattr(self, "_renderer", None) is not None:
-            self._renderer.delete()
-            self._renderer = None
+            r, self._renderer = self._renderer, None
+            try:
+                r.delete()
+            except Exception:
+                # pyrender's EGL teardown terminates the display every context of the process shares: with
+                # two renderers open (e.g. a scene renderer and a pose refiner's), the second one's delete
+                # cannot make its context current any more; its resources go with the display
+                pass
 
     def __del__(self) -> None:  # pragma: no cover
         try:

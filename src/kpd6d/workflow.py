@@ -194,6 +194,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     from kpd6d.evaluation.runner import evaluate
     from kpd6d.pipeline import PosePipeline
     from kpd6d.pnp.estimator import candidate_options, candidates_record
+    from kpd6d.refinement import build_refiner
 
     root = Path(cfg.data.root)
     if not root.is_dir():
@@ -223,11 +224,14 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
         raise ValueError(f"data.obj_ids {missing} are not covered by the KPD checkpoint {kpd_ckpt or cfg.export_dir} "
                          f"(it covers {covered})")
     ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
+    pipeline.set_refiner(build_refiner(to_plain(cfg.get("refiner")), lambda: ds.load_models(wanted),
+                                       source=f"{ds.models_dir}"))
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
             **({"crop_tta": pipeline.crop_tta} if pipeline.crop_tta > 1 else {}),
             **({"candidates": candidates_record(*pipeline.candidate_spec)} if pipeline.candidate_spec.verifies else {}),
             "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device),
+            **({"refiner": pipeline.refiner.settings()} if pipeline.refiner is not None else {}),
             **({"detector_overrides": det_over} if det_over and str(cfg.detector_ckpt) != "oracle" else {})}
     if backend != "torch":
         info.update(backend=backend, export_dir=str(cfg.export_dir))
@@ -279,6 +283,7 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
         "detector_overrides": check_detector_overrides(to_plain(cfg.evaluate.get("detector_overrides")), ConfigError,
                                                        "evaluate.detector_overrides"),
         "depth_calibration": _depth_calibration(cfg.evaluate.get("depth_calibration", 1.0)),
+        "refiner": to_plain(cfg.evaluate.get("refiner")),
         "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress), **over,
     })
 
@@ -306,8 +311,9 @@ def _auto_depth_calibration(cfg, root: Path, det, kpd, out_dir: Path) -> str:
         raise ValueError(f"evaluate.depth_calibration=auto fits on the generated validation split, and {root}/val "
                          f"does not exist (data.num_val > 0)")
     _log(f"fitting the depth calibration on {root}/val (detector: {det})")
+    # fitted on the PnP poses (the refiner, which comes after the calibration, is left out)
     run_evaluation(_eval_cfg(cfg, root, "val", det, kpd, max_frames=None, depth_calibration=1.0,
-                             fit_depth_calibration=True, overlays=0), out_dir)
+                             fit_depth_calibration=True, overlays=0, refiner=None), out_dir)
     return str(out)
 
 

@@ -71,7 +71,7 @@ def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] 
     lines = ["# kpd6d evaluation", ""]
     info = metrics.get("run", {})
     for k in ("dataset", "split", "targets", "detector", "kpd", "pnp", "top_l", "refine_boxes", "box_scale", "crop_tta",
-              "depth_calibration", "frames", "device"):
+              "depth_calibration", "refiner", "frames", "device"):
         if k in info:
             lines.append(f"- {k}: `{info[k]}`")
     lines += ["", "| object | id | n | ADD(-S) 0.1d (%) | 2D proj. 5 px (%) | 10 px (%) | 15 px (%) | AUC ADD(-S) ≤0.5d (%) "

@@ -366,7 +366,8 @@ def _predict_frames(pipeline, frames, pred_path: Path, *, batch_size: int, oracl
                 for i, ps in zip(g, preds):
                     rec = {"scene_id": batch[i].scene_id, "im_id": batch[i].im_id, "time": dt, "stages": timings,
                            "preds": [{"obj_id": int(p["obj_id"]), "score": float(p["score"]), "ok": bool(p["ok"]),
-                                      "R": np.asarray(p["R"]).tolist(), "t": np.asarray(p["t"]).tolist()} for p in ps]}
+                                      "R": np.asarray(p["R"]).tolist(), "t": np.asarray(p["t"]).tolist(),
+                                      **({"refined": bool(p["refined"])} if "refined" in p else {})} for p in ps]}
                     fout.write(json.dumps(rec) + "\n")
                     fout.flush()
                 bar.update(len(g))

@@ -298,6 +298,16 @@ class PoseEstimatorBase:
     input_error: type[Exception] = ValueError
     kpd: Any
     pnp: Any
+    #: a pose refiner (``refine_poses(images, Ks, poses)``, e.g. :class:`kpd6d.refinement.RegionRefiner`)
+    #: run on the final poses of ``predict_batch`` / ``predict_boxes``; None: the PnP poses as they are
+    refiner: Any = None
+
+    def set_refiner(self, refiner: Any) -> None:
+        """Use ``refiner`` (None: none) on the poses this pipeline returns (:attr:`refiner`)."""
+        if refiner is not None and not callable(getattr(refiner, "refine_poses", None)):
+            raise self.input_error(f"refiner must have .refine_poses(images, Ks, poses) (or be None), "
+                                   f"got {type(refiner).__name__}")
+        self.refiner = refiner
 
     def _set_options(self, pnp: Any, top_l: int | None, refine_boxes: int, min_confidence: float,
                      residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
@@ -365,6 +375,7 @@ class PoseEstimatorBase:
             out = [best_candidates(poses, spec.detector_weight) for poses in out]
             if crops != self.crop_tta:  # the kept candidates again, with crop_tta crops
                 out = self._reestimate(x, Ks, out)
+        out = self._refine(images, Ks, out)
         self.last_timings["detect"] = t1 - t0
         self.last_timings["total"] = time.perf_counter() - t0
         return out
@@ -396,12 +407,21 @@ class PoseEstimatorBase:
         Ks = check_intrinsics(K, n, self.input_error)
         boxes, obj_ids, img_idx, scores = check_box_inputs(boxes, obj_ids, image_index, scores, n,
                                                            self.kpd.keypoints_3d, error=self.input_error)
-        out = self._estimate(x, Ks, boxes.tolist(), img_idx, obj_ids, scores)
+        out = self._refine(images, Ks, self._estimate(x, Ks, boxes.tolist(), img_idx, obj_ids, scores))
         self.last_timings["detect"] = 0.0
         self.last_timings["total"] = time.perf_counter() - t0
         return out
 
     # -- the shared steps -------------------------------------------------------------------------
+    def _refine(self, images, Ks: np.ndarray, poses: list[list[dict]]) -> list[list[dict]]:
+        """:attr:`refiner` on the poses (timed as ``last_timings["refine"]``)."""
+        if self.refiner is None:
+            return poses
+        t0 = time.perf_counter()
+        poses = self.refiner.refine_poses(images, Ks, poses)
+        self.last_timings["refine"] = time.perf_counter() - t0
+        return poses
+
     def _detect(self, x, targets) -> list[dict]:
         """The detections of the batch ``x`` the KPD can localise, flat: box, image_index, obj_id, score."""
         B = self._num_images(x)

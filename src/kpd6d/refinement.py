@@ -1,0 +1,348 @@
+"""Region-based pose refinement: a pose (from the KPD + PnP) pulled onto the object's silhouette in
+the image itself, with nothing learnt (sparse correspondence lines in the manner of SRT3D, Stoiber et
+al., "A Sparse Gaussian Approach to Region-Based 6DoF Object Tracking", ACCV 2020).
+
+Each iteration:
+
+1. the object's silhouette at the current pose is rendered (depth only) into a small viewport that
+   frames its projected box (same camera centre and orientation, scaled intrinsics, so the silhouette
+   and its 3D contour points are exact); ``num_lines`` points are sampled along its outer contour and
+   lifted to 3D from the rendered depth;
+2. colour histograms of the foreground (the silhouette, eroded) and the background (a ring around it)
+   are collected from the image, giving each pixel a foreground posterior ``p_f``;
+3. along each contour point's normal a correspondence line samples ``p_f`` at ``2 L + 1`` positions
+   ``step`` pixels apart; a smoothed step model (foreground inside, background outside) gives a
+   distribution of where the image's contour lies on the line, summarised by its mean ``mu`` and
+   variance ``var``;
+4. one regularised Gauss-Newton step moves the pose (rotation about the object's centre, translation)
+   so that the projected contour points move ``mu`` along their normals, each line weighted by
+   ``1 / var``.
+
+The line spacing shrinks from coarse to fine over the iterations, in proportion to the object's
+projected size. The only colours used are the image's own: there is no domain gap to cross. Where too
+few lines carry evidence the input pose is returned unchanged (``RefineResult.ok`` False).
+"""
+from __future__ import annotations
+
+import inspect
+from collections.abc import Mapping
+from dataclasses import dataclass, field, fields
+from typing import Any
+
+import numpy as np
+
+from kpd6d.geometry import rotation_about_axis
+from kpd6d.registry import REFINERS, build_from_cfg
+
+__all__ = ["RefineResult", "RegionRefineConfig", "RegionRefiner", "build_refiner"]
+
+
+@dataclass(frozen=True)
+class RegionRefineConfig:
+    """Settings of :class:`RegionRefiner` (lengths in pixels of the image unless said otherwise).
+
+    ``scales``: one Gauss-Newton step per entry; each is the line's half-length as a fraction of the
+    object's projected diameter (coarse to fine). ``line_steps``: samples on each side of the contour
+    (``L``); the spacing is ``scale * diameter_px / L``, at least ``min_step``. ``num_lines``: contour
+    points per iteration. ``hist_bins``: bins per colour channel. ``amplitude`` / ``slope``: the
+    smoothed step ``h_f(x) = 1/2 - amplitude * tanh(x / (2 slope))`` (x in line steps, outward
+    positive). ``prior_rotation`` (rad) / ``prior_translation`` (mm): standard deviations of a zero-mean
+    prior on each step (keeps weakly observed directions still). ``min_lines``: fewer informative
+    lines than this and the input pose is kept. ``viewport``: side of the silhouette render.
+    """
+
+    scales: tuple[float, ...] = (0.25, 0.18, 0.12, 0.09, 0.07, 0.06)
+    line_steps: int = 8
+    min_step: float = 1.0
+    num_lines: int = 200
+    hist_bins: int = 16
+    amplitude: float = 0.43
+    slope: float = 0.5
+    prior_rotation: float = 0.2
+    prior_translation: float = 30.0
+    min_lines: int = 20
+    viewport: int = 192
+    ring: float = 0.15  # background ring width, as a fraction of the projected diameter
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "scales", tuple(float(v) for v in self.scales))
+        if not self.scales or any(not (s > 0) for s in self.scales):
+            raise ValueError(f"region refinement: scales must be positive fractions of the projected diameter, got {self.scales}")
+        for name in ("line_steps", "num_lines", "hist_bins", "min_lines", "viewport"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"region refinement: {name} must be >= 1, got {getattr(self, name)}")
+        if not (0 < self.amplitude < 0.5):
+            raise ValueError(f"region refinement: amplitude must lie in (0, 0.5), got {self.amplitude}")
+        for name in ("slope", "min_step", "prior_rotation", "prior_translation", "ring"):
+            if not (getattr(self, name) > 0):
+                raise ValueError(f"region refinement: {name} must be > 0, got {getattr(self, name)}")
+
+
+@dataclass
+class RefineResult:
+    R: np.ndarray
+    t: np.ndarray
+    ok: bool
+    lines: int = 0  # informative lines in the last iteration
+    history: list = field(default_factory=list)  # (R, t) after each step
+
+
+def _so3_exp(w: np.ndarray) -> np.ndarray:
+    angle = float(np.linalg.norm(w))
+    if angle < 1e-12:
+        return np.eye(3)
+    return rotation_about_axis(w / angle, angle)
+
+
+class RegionRefiner:
+    """Refines poses of :class:`~kpd6d.objects.ObjectModel` s in an RGB image (uint8, H x W x 3) seen
+    by a camera ``K``. ``models``: obj_id -> model, for :meth:`refine_poses` (a pipeline's pose dicts
+    name objects by id; :meth:`set_models` sets them later). Holds one small offscreen renderer
+    (created on first use)."""
+
+    def __init__(self, config: RegionRefineConfig | None = None, models: Mapping[int, Any] | None = None,
+                 renderer=None) -> None:
+        self.config = config or RegionRefineConfig()
+        self.models: dict[int, Any] = {}
+        self.models_source = "models given in code"
+        if models is not None:
+            self.set_models(models)
+        self._renderer = renderer
+
+    def set_models(self, models: Mapping[int, Any] | Any, source: str | None = None) -> None:
+        """obj_id -> :class:`~kpd6d.objects.ObjectModel` (a mapping, or a list of models)."""
+        items = models.items() if isinstance(models, Mapping) else ((m.obj_id, m) for m in models)
+        self.models = {int(o): m for o, m in items}
+        if source is not None:
+            self.models_source = source
+
+    def settings(self) -> dict:
+        """The refiner's name and settings, JSON-ready (what an evaluation records)."""
+        return {"name": "region", **{f.name: (list(v) if isinstance(v := getattr(self.config, f.name), tuple) else v)
+                                     for f in fields(self.config)}}
+
+    def refine_poses(self, images, Ks, poses: list[list[dict]]) -> list[list[dict]]:
+        """Refine, in place, each ``ok`` pose dict of ``poses`` (one list per image of ``images``,
+        uint8 RGB; ``Ks`` (B, 3, 3)). Each pose dict gets ``refined`` (bool: the pose moved); a pose
+        whose refinement found too little evidence keeps the estimate it had."""
+        for b, plist in enumerate(poses):
+            todo = [p for p in plist if p.get("ok")]
+            if not todo:
+                continue
+            image = np.asarray(images[b])
+            if image.ndim != 3 or image.shape[2] < 3 or image.dtype != np.uint8:
+                raise ValueError(f"pose refinement needs uint8 RGB images (H, W, 3), got {image.dtype} {image.shape}")
+            for p in plist:
+                p["refined"] = False
+            for p in todo:
+                oid = int(p["obj_id"])
+                if oid not in self.models:
+                    raise KeyError(f"pose refinement: no mesh for object {oid} ({self.models_source} has "
+                                   f"{sorted(self.models) or 'none'})")
+                res = self.refine(image, self.models[oid], p["R"], p["t"], Ks[b])
+                if res.ok:
+                    p["R"], p["t"], p["refined"] = res.R, res.t, True
+        return poses
+
+    @property
+    def renderer(self):
+        if self._renderer is None:
+            from kpd6d.render import Renderer
+
+            s = self.config.viewport
+            self._renderer = Renderer(s, s, antialias=False)
+        return self._renderer
+
+    def close(self) -> None:
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # -- one silhouette -------------------------------------------------------------------------
+    def _contour(self, model, R, t, K, centre_px, diameter_px):
+        """3D contour points (camera frame, mm), their outward image normals, the edge offset (px)
+        and the silhouette as (mask, affine viewport -> image), or None if it is not visible."""
+        import cv2
+
+        s = self.config.viewport
+        a = min(4.0, 0.8 * s / max(diameter_px, 1.0))
+        Kv = np.array([[a * K[0, 0], 0.0, a * (K[0, 2] - centre_px[0]) + (s - 1) / 2],
+                       [0.0, a * K[1, 1], a * (K[1, 2] - centre_px[1]) + (s - 1) / 2],
+                       [0.0, 0.0, 1.0]])
+        depth = self.renderer.render([(model, R, t)], K=Kv, depth_only=True).depth
+        mask = (depth > 0).astype(np.uint8)
+        contours, _ = cv2.findContours(mask, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_NONE)
+        contours = [c[:, 0, :] for c in contours if len(c) >= 8]
+        if not contours:
+            return None
+        n_total = sum(len(c) for c in contours)
+        pts, nrm = [], []
+        for c in contours:
+            k = max(1, round(self.config.num_lines * len(c) / n_total))
+            idx = np.linspace(0, len(c), k, endpoint=False).astype(int)
+            tan = (np.roll(c, -2, axis=0) - np.roll(c, 2, axis=0)).astype(np.float64)[idx]
+            nv = np.stack([tan[:, 1], -tan[:, 0]], 1)
+            nv /= np.maximum(np.linalg.norm(nv, axis=1, keepdims=True), 1e-9)
+            p = c[idx].astype(np.float64)
+            probe = np.round(p + 2.0 * nv).astype(int)
+            inside = np.zeros(len(p), bool)
+            ok = (probe[:, 0] >= 0) & (probe[:, 0] < s) & (probe[:, 1] >= 0) & (probe[:, 1] < s)
+            inside[ok] = mask[probe[ok, 1], probe[ok, 0]] > 0
+            nv[inside] *= -1.0
+            pts.append(p)
+            nrm.append(nv)
+        p = np.concatenate(pts)
+        nv = np.concatenate(nrm)
+        z = depth[p[:, 1].astype(int), p[:, 0].astype(int)].astype(np.float64)
+        X = np.linalg.solve(Kv, np.concatenate([p, np.ones((len(p), 1))], 1).T).T * z[:, None]
+        A = np.array([[1.0 / a, 0.0, centre_px[0] - (s - 1) / 2 / a],
+                      [0.0, 1.0 / a, centre_px[1] - (s - 1) / 2 / a]])  # viewport px -> image px
+        return X, nv, 0.5 / a, (mask, A)
+
+    def _posterior(self, image, mask, A, diameter_px):
+        """Per-pixel foreground posterior on the image (float32, H x W), from colour histograms of the
+        silhouette (eroded) and a ring around it."""
+        import cv2
+
+        H, W = image.shape[:2]
+        sil = cv2.warpAffine(mask * 255, A, (W, H), flags=cv2.INTER_LINEAR) > 127
+        ring = max(3, round(self.config.ring * diameter_px))
+        k3 = np.ones((3, 3), np.uint8)
+        fg = cv2.erode(sil.astype(np.uint8), k3, iterations=1) > 0
+        grown = cv2.dilate(sil.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ring + 1,) * 2)) > 0
+        near = cv2.dilate(sil.astype(np.uint8), k3, iterations=2) > 0
+        bg = grown & ~near
+        b = self.config.hist_bins
+        shift = 8 - int(np.log2(b))
+        q = (image >> shift).astype(np.int32)
+        code = (q[..., 0] * b + q[..., 1]) * b + q[..., 2]
+        n = b ** 3
+        hf = np.bincount(code[fg], minlength=n).astype(np.float64)
+        hb = np.bincount(code[bg], minlength=n).astype(np.float64)
+        if hf.sum() < 10 or hb.sum() < 10:
+            return None, sil
+        hf = hf / hf.sum() + 1e-6
+        hb = hb / hb.sum() + 1e-6
+        pf = (hf / (hf + hb)).astype(np.float32)
+        return pf[code], sil
+
+    def refine(self, image: np.ndarray, model, R, t, K) -> RefineResult:
+        """Refine the pose (R, t: model -> OpenCV camera, mm) of ``model`` in ``image``."""
+        import cv2
+
+        cfg = self.config
+        image = np.ascontiguousarray(image[..., :3])
+        K = np.asarray(K, np.float64)
+        R = np.asarray(R, np.float64).copy()
+        t = np.asarray(t, np.float64).reshape(3).copy()
+        H, W = image.shape[:2]
+        centre_m = np.asarray(model.mesh.bounds, np.float64).mean(0)
+        L = int(cfg.line_steps)
+        s_grid = np.arange(-L, L + 1, dtype=np.float64)  # sample positions, in steps, outward positive
+        d_grid = np.arange(-(L - 1), L - 1 + 0.25, 0.5)  # candidate contour positions
+        prior = np.diag([1.0 / cfg.prior_rotation ** 2] * 3 + [1.0 / cfg.prior_translation ** 2] * 3)
+        history, lines, ok = [], 0, False
+        for scale in cfg.scales:
+            c = R @ centre_m + t
+            if c[2] <= 1e-3:
+                break
+            centre_px = (K @ c)[:2] / c[2]
+            diameter_px = float(K[0, 0] * model.diameter / c[2])
+            got = self._contour(model, R, t, K, centre_px, diameter_px)
+            if got is None:
+                break
+            X, nv, edge, (mask, A) = got
+            pf, sil = self._posterior(image, mask, A, diameter_px)
+            if pf is None:
+                break
+            step = max(cfg.min_step, scale * diameter_px / L)
+            if step > 1.5:  # each sample stands for its stretch of the line
+                kk = round(step) | 1
+                pf = cv2.blur(pf, (kk, kk))
+            uv = (K @ X.T).T
+            uv = uv[:, :2] / uv[:, 2:3]
+            base = uv + edge * nv
+            pos = base[:, None, :] + (s_grid[None, :, None] * step) * nv[:, None, :]  # (n, 2L+1, 2)
+            inside_img = (pos[..., 0] >= 0) & (pos[..., 0] <= W - 1) & (pos[..., 1] >= 0) & (pos[..., 1] <= H - 1)
+            mx = np.clip(pos[..., 0], 0, W - 1).astype(np.float32)
+            my = np.clip(pos[..., 1], 0, H - 1).astype(np.float32)
+            p = cv2.remap(pf, mx, my, cv2.INTER_LINEAR)
+            # inner samples past the far side of the silhouette see background again: not this edge's
+            on_sil = cv2.remap(sil.astype(np.float32), mx, my, cv2.INTER_NEAREST) > 0.5
+            valid = inside_img & ((s_grid[None, :] >= 0) | on_sil)
+            x = s_grid[None, None, :] - d_grid[None, :, None]  # (1, D, S)
+            hf = 0.5 - cfg.amplitude * np.tanh(x / (2.0 * cfg.slope))
+            pp = p[:, None, :].astype(np.float64)
+            like = np.log(np.clip(hf * pp + (1.0 - hf) * (1.0 - pp), 1e-9, None))
+            logp = np.sum(like * valid[:, None, :], axis=2)  # (n, D)
+            logp -= logp.max(axis=1, keepdims=True)
+            prob = np.exp(logp)
+            prob /= prob.sum(axis=1, keepdims=True)
+            mu = prob @ d_grid
+            var = prob @ (d_grid ** 2) - mu ** 2
+            use = (valid.sum(1) >= L) & (np.abs(mu) < L - 2) & (var < (0.5 * L) ** 2)
+            lines = int(use.sum())
+            if lines < cfg.min_lines:
+                break
+            mu_px = mu[use] * step
+            w = 1.0 / (var[use] * step ** 2 + step ** 2 / 12.0)
+            Xu, n2 = X[use], nv[use]
+            z = Xu[:, 2]
+            dpi = np.zeros((len(Xu), 2, 3))
+            dpi[:, 0, 0] = K[0, 0] / z
+            dpi[:, 0, 2] = -K[0, 0] * Xu[:, 0] / z ** 2
+            dpi[:, 1, 1] = K[1, 1] / z
+            dpi[:, 1, 2] = -K[1, 1] * Xu[:, 1] / z ** 2
+            g = np.einsum("ni,nij->nj", n2, dpi)  # d(normal displacement) / dX, (n, 3)
+            r = Xu - c
+            J = np.concatenate([np.cross(r, g), g], axis=1)  # rotation about c, then translation
+            Hm = (J * w[:, None]).T @ J + prior
+            theta = np.linalg.solve(Hm, (J * w[:, None]).T @ mu_px)
+            dR = _so3_exp(theta[:3])
+            R = dR @ R
+            t = dR @ (t - c) + c + theta[3:]
+            history.append((R.copy(), t.copy()))
+            ok = True
+        return RefineResult(R=R, t=t, ok=ok, lines=lines, history=history)
+
+
+@REFINERS.register("none")
+def no_refiner(models_dir: str | None = None) -> None:
+    """No refinement: the KPD + PnP poses as they are (the paper)."""
+    return None
+
+
+def region_refiner(models_dir: str | None = None, **settings: Any) -> RegionRefiner:
+    """:class:`RegionRefiner` with :class:`RegionRefineConfig` ``settings``; ``models_dir``: a BOP models
+    folder with the objects' meshes (None: set them later, e.g. kpd6d-evaluate's dataset models)."""
+    ref = RegionRefiner(RegionRefineConfig(**settings))
+    if models_dir is not None:
+        from kpd6d.objects import load_bop_models
+
+        ref.set_models(load_bop_models(models_dir), source=f"models_dir={models_dir}")
+    return ref
+
+
+# the factory's signature lists the config's fields (their defaults in one place: RegionRefineConfig), so
+# the registry names them in errors and conf/refiner/region.yaml is checked against them
+region_refiner.__signature__ = inspect.Signature(
+    [inspect.Parameter("models_dir", inspect.Parameter.KEYWORD_ONLY, default=None)]
+    + [inspect.Parameter(f.name, inspect.Parameter.KEYWORD_ONLY, default=f.default) for f in fields(RegionRefineConfig)])
+REFINERS.register("region")(region_refiner)
+
+
+def build_refiner(cfg: Any, models: Any = None, where: str = "refiner", source: str | None = None) -> Any:
+    """The refiner a config's ``refiner`` group describes (None, or ``name: none``: no refinement).
+
+    A refiner with no meshes of its own (``models_dir: null``) takes ``models`` (a mapping or list of
+    :class:`~kpd6d.objects.ObjectModel`, or a callable returning one, called only then; ``source`` says
+    where they came from); with neither it raises, naming ``<where>.models_dir``."""
+    if cfg is None:
+        return None
+    ref = build_from_cfg(REFINERS, cfg)
+    if ref is not None and not ref.models:
+        if models is None:
+            raise ValueError(f"{where}.models_dir is required: pose refinement needs the objects' meshes "
+                             f"(a BOP models folder)")
+        ref.set_models(models() if callable(models) else models, source=source)
+    return ref

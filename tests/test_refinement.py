@@ -1,0 +1,115 @@
+"""Region-based pose refinement (kpd6d.refinement): poses pulled onto rendered objects' silhouettes,
+checked against the ground-truth poses the images were rendered at."""
+
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+from kpd6d.geometry import LINEMOD_K, pose_from_view, rotation_about_axis, rotation_error_deg
+from kpd6d.objects import procedural_objects
+from kpd6d.refinement import RegionRefineConfig, RegionRefiner, build_refiner
+from kpd6d.registry import REFINERS, UnknownNameError
+
+
+@pytest.fixture(scope="module")
+def scene_renderer():
+    from kpd6d.render import Renderer
+
+    r = Renderer(640, 480, LINEMOD_K, antialias=False)
+    yield r
+    r.close()
+
+
+@pytest.fixture(scope="module")
+def refiner():
+    ref = RegionRefiner()
+    yield ref
+    ref.close()
+
+
+def _scene(renderer, model, seed=0):
+    """The object rendered at a known pose over a dark, unsaturated noise background."""
+    import cv2
+
+    rng = np.random.default_rng(seed)
+    R, t = pose_from_view(0.7, 0.5, 650.0, 0.3)
+    t = t + np.array([30.0, -20.0, 0.0])
+    res = renderer.render([(model, R, t)])
+    grey = cv2.resize(rng.uniform(30, 90, (30, 40)).astype(np.float32), (640, 480))
+    bg = np.repeat(grey[..., None], 3, axis=2) + rng.uniform(-6, 6, (1, 1, 3))
+    image = np.where((res.depth > 0)[..., None], res.rgb, np.clip(bg, 0, 255)).astype(np.uint8)
+    return image, R, t
+
+
+def _perturbed(R, t, seed=1, deg=6.0, dt=(4.0, -3.0, 35.0)):
+    axis = np.random.default_rng(seed).normal(size=3)
+    return rotation_about_axis(axis / np.linalg.norm(axis), np.radians(deg)) @ R, t + np.asarray(dt)
+
+
+@pytest.mark.parametrize("obj_id", [1, 3, 5])
+def test_refinement_recovers_a_perturbed_pose(scene_renderer, refiner, obj_id):
+    model = procedural_objects(obj_ids=[obj_id])[0]
+    image, R, t = _scene(scene_renderer, model)
+    Rp, tp = _perturbed(R, t)
+    out = refiner.refine(image, model, Rp, tp, LINEMOD_K)
+    assert out.ok and out.lines >= 100 and len(out.history) == len(refiner.config.scales)
+    err_t, err_r = np.linalg.norm(out.t - t), rotation_error_deg(out.R, R)
+    # from 35 mm / 6 degrees off to a few mm / about a degree (depth comes from the silhouette's size)
+    assert err_t < 8.0 and err_r < 3.0, (err_t, err_r)
+    assert abs(out.t[2] - t[2]) < 6.0
+    # each step a proper rotation
+    assert np.allclose(out.R @ out.R.T, np.eye(3), atol=1e-9) and np.linalg.det(out.R) == pytest.approx(1.0)
+
+
+def test_refinement_keeps_the_true_pose(scene_renderer, refiner):
+    model = procedural_objects(obj_ids=[1])[0]
+    image, R, t = _scene(scene_renderer, model, seed=3)
+    out = refiner.refine(image, model, R, t, LINEMOD_K)
+    assert out.ok
+    assert np.linalg.norm(out.t - t) < 3.0 and rotation_error_deg(out.R, R) < 1.5
+
+
+def test_no_evidence_keeps_the_input_pose(refiner):
+    model = procedural_objects(obj_ids=[1])[0]
+    R, t = pose_from_view(0.7, 0.5, 650.0, 0.3)
+    flat = np.full((480, 640, 3), 128, np.uint8)  # object and background the same colour: nothing to align to
+    out = refiner.refine(flat, model, R, t, LINEMOD_K)
+    assert not out.ok and out.history == []
+    assert np.array_equal(out.R, R) and np.array_equal(out.t, t)
+
+
+def test_refine_poses_updates_ok_poses_and_names_missing_meshes(scene_renderer):
+    model = procedural_objects(obj_ids=[3])[0]
+    image, R, t = _scene(scene_renderer, model)
+    Rp, tp = _perturbed(R, t)
+    ref = RegionRefiner(models={3: model})
+    poses = [[{"obj_id": 3, "R": Rp, "t": tp, "ok": True}, {"obj_id": 3, "R": Rp, "t": tp, "ok": False}]]
+    out = ref.refine_poses([image], LINEMOD_K[None], poses)
+    good, failed = out[0]
+    assert good["refined"] and np.linalg.norm(good["t"] - t) < 8.0
+    assert not failed["refined"] and failed["t"] is tp  # not ok: left as it was
+    with pytest.raises(KeyError, match=r"no mesh for object 7 .*\[3\]"):
+        ref.refine_poses([image], LINEMOD_K[None], [[{"obj_id": 7, "R": R, "t": t, "ok": True}]])
+    with pytest.raises(ValueError, match="uint8 RGB"):
+        ref.refine_poses([image.astype(np.float32)], LINEMOD_K[None], poses)
+    ref.close()
+
+
+def test_registry_configs_and_errors(tmp_path):
+    assert REFINERS.names() == ["none", "region"]
+    assert build_refiner(None) is None and build_refiner({"name": "none"}) is None
+    with pytest.raises(ValueError, match=r"refiner\.models_dir is required"):
+        build_refiner({"name": "region"})
+    models = procedural_objects(obj_ids=[1, 2])
+    ref = build_refiner({"name": "region", "num_lines": 50}, lambda: models, source="the dataset")
+    assert sorted(ref.models) == [1, 2] and ref.config.num_lines == 50
+    assert ref.settings()["name"] == "region" and ref.settings()["scales"] == list(RegionRefineConfig().scales)
+    with pytest.raises(TypeError, match=r"got unknown parameter.*lines_per_step.*it accepts: models_dir"):
+        build_refiner({"name": "region", "lines_per_step": 3}, models)
+    with pytest.raises(UnknownNameError, match="known pose refiners: none, region"):
+        build_refiner({"name": "icp"}, models)
+    with pytest.raises(ValueError, match="amplitude must lie in"):
+        RegionRefineConfig(amplitude=0.6)
+    with pytest.raises(ValueError, match="scales must be positive"):
+        RegionRefineConfig(scales=())

@@ -113,3 +113,31 @@ def test_registry_configs_and_errors(tmp_path):
         RegionRefineConfig(amplitude=0.6)
     with pytest.raises(ValueError, match="scales must be positive"):
         RegionRefineConfig(scales=())
+
+
+def test_occlusion_masks_the_lines_another_object_hides(scene_renderer):
+    """Object 1 with 30 % of it hidden behind object 3: with ``occlusion`` the lines the front object
+    covers carry no evidence, and the refined pose is closer to the truth than without."""
+    import cv2
+
+    back, front = procedural_objects(obj_ids=[1, 3])
+    R, t = pose_from_view(0.7, 0.5, 650.0, 0.3)
+    t = t + np.array([30.0, -20.0, 0.0])
+    Rf, tf = pose_from_view(2.0, 0.3, 450.0, 1.0)
+    tf = tf + np.array([75.0, -5.0, 0.0])
+    res = scene_renderer.render([(back, R, t), (front, Rf, tf)])
+    alone = scene_renderer.render([(back, R, t)]).masks_visib[0]
+    assert 0.6 < res.masks_visib[0].sum() / alone.sum() < 0.8
+    grey = cv2.resize(np.random.default_rng(0).uniform(30, 90, (30, 40)).astype(np.float32), (640, 480))
+    image = np.where((res.depth > 0)[..., None], res.rgb, np.repeat(grey[..., None], 3, axis=2)).astype(np.uint8)
+    axis = np.array([0.3, -0.5, 0.8]) / np.linalg.norm([0.3, -0.5, 0.8])
+    Rp, tp = rotation_about_axis(axis, np.radians(6.0)) @ R, t + np.array([4.0, -3.0, 35.0])
+    errors = {}
+    for occlusion in (False, True):
+        ref = RegionRefiner(RegionRefineConfig(occlusion=occlusion), models={1: back, 3: front})
+        poses = [[{"obj_id": 1, "R": Rp, "t": tp, "ok": True}, {"obj_id": 3, "R": Rf, "t": tf, "ok": True}]]
+        p = ref.refine_poses([image], LINEMOD_K[None], poses)[0][0]
+        errors[occlusion] = (rotation_error_deg(p["R"], R), np.linalg.norm(p["t"] - t))
+        ref.close()
+    assert errors[True][0] < 0.8 and errors[True][1] < 3.0, errors
+    assert errors[True][0] < errors[False][0], errors

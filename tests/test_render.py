@@ -163,3 +163,21 @@ def trimesh_quad(color, kind: str):
     else:
         quad.visual.face_colors = np.tile(rgba, (2, 1))
     return quad
+
+
+def test_closing_one_renderer_leaves_the_others_working(objs):
+    """pyrender's EGL teardown terminates the display all contexts share; Renderer.close must not, while
+    another renderer of the process is open (a scene renderer beside a pose refiner's)."""
+    from kpd6d.geometry import LINEMOD_K
+
+    R, t = pose_from_view(0.3, 0.5, 700.0, 0.0)
+    a, b = Renderer(160, 120, LINEMOD_K * np.array([[0.25], [0.25], [1.0]])), Renderer(96, 96)
+    before = a.render([(objs[0], R, t)]).depth
+    b.render([(objs[0], R, t)], depth_only=True)
+    b.close()
+    np.testing.assert_array_equal(a.render([(objs[0], R, t)]).depth, before)  # still renders, the same
+    a.close()
+    a.close()  # closing twice is harmless
+    c = Renderer(160, 120, LINEMOD_K * np.array([[0.25], [0.25], [1.0]]))  # and a new one works after all closed
+    np.testing.assert_array_equal(c.render([(objs[0], R, t)]).depth, before)
+    c.close()

@@ -48,7 +48,10 @@ class RegionRefineConfig:
     smoothed step ``h_f(x) = 1/2 - amplitude * tanh(x / (2 slope))`` (x in line steps, outward
     positive). ``prior_rotation`` (rad) / ``prior_translation`` (mm): standard deviations of a zero-mean
     prior on each step (keeps weakly observed directions still). ``min_lines``: fewer informative
-    lines than this and the input pose is kept. ``viewport``: side of the silhouette render.
+    lines than this and the input pose is kept. ``viewport``: side of the silhouette render. ``occlusion``: in :meth:`RegionRefiner.refine_poses`,
+    the other objects estimated in the same image (at their current poses) are rendered too, and line
+    samples where one of them lies in front of the object's contour (by more than 5 % of the object's
+    diameter) carry no evidence, nor do the pixels they cover in the foreground histogram.
     """
 
     scales: tuple[float, ...] = (0.25, 0.18, 0.12, 0.09, 0.07, 0.06)
@@ -63,6 +66,7 @@ class RegionRefineConfig:
     min_lines: int = 20
     viewport: int = 192
     ring: float = 0.15  # background ring width, as a fraction of the projected diameter
+    occlusion: bool = False  # the image's other estimated objects mask the line samples they cover
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(v) for v in self.scales))
@@ -139,7 +143,10 @@ class RegionRefiner:
                 if oid not in self.models:
                     raise KeyError(f"pose refinement: no mesh for object {oid} ({self.models_source} has "
                                    f"{sorted(self.models) or 'none'})")
-                res = self.refine(image, self.models[oid], p["R"], p["t"], Ks[b])
+            for p in todo:
+                others = [(self.models[int(q["obj_id"])], q["R"], q["t"]) for q in todo
+                          if q is not p] if self.config.occlusion else ()
+                res = self.refine(image, self.models[int(p["obj_id"])], p["R"], p["t"], Ks[b], others=others)
                 if res.ok:
                     p["R"], p["t"], p["refined"] = res.R, res.t, True
         return poses
@@ -159,9 +166,11 @@ class RegionRefiner:
             self._renderer = None
 
     # -- one silhouette -------------------------------------------------------------------------
-    def _contour(self, model, R, t, K, centre_px, diameter_px):
-        """3D contour points (camera frame, mm), their outward image normals, the edge offset (px)
-        and the silhouette as (mask, affine viewport -> image), or None if it is not visible."""
+    def _contour(self, model, R, t, K, centre_px, diameter_px, others=()):
+        """3D contour points (camera frame, mm), their outward image normals, the edge offset (px),
+        the silhouette as (mask, affine viewport -> image, Kv), and the depth of ``others`` where one
+        of them is in front of the object and hides it or its surroundings (viewport, 0 elsewhere; None
+        without others), or None if the object is not visible."""
         import cv2
 
         s = self.config.viewport
@@ -197,11 +206,15 @@ class RegionRefiner:
         X = np.linalg.solve(Kv, np.concatenate([p, np.ones((len(p), 1))], 1).T).T * z[:, None]
         A = np.array([[1.0 / a, 0.0, centre_px[0] - (s - 1) / 2 / a],
                       [0.0, 1.0 / a, centre_px[1] - (s - 1) / 2 / a]])  # viewport px -> image px
-        return X, nv, 0.5 / a, (mask, A)
+        occ = None
+        if others:
+            res = self.renderer.render([(model, R, t), *others], K=Kv, depth_only=True)
+            occ = np.where(res.masks_visib[0], 0.0, res.depth).astype(np.float32)  # the front-most other object
+        return X, nv, 0.5 / a, (mask, A, a), occ
 
-    def _posterior(self, image, mask, A, diameter_px):
+    def _posterior(self, image, mask, A, diameter_px, hidden=None):
         """Per-pixel foreground posterior on the image (float32, H x W), from colour histograms of the
-        silhouette (eroded) and a ring around it."""
+        silhouette (eroded; less the ``hidden`` viewport pixels) and a ring around it."""
         import cv2
 
         H, W = image.shape[:2]
@@ -209,6 +222,8 @@ class RegionRefiner:
         ring = max(3, round(self.config.ring * diameter_px))
         k3 = np.ones((3, 3), np.uint8)
         fg = cv2.erode(sil.astype(np.uint8), k3, iterations=1) > 0
+        if hidden is not None:
+            fg &= ~(cv2.warpAffine(hidden.astype(np.uint8) * 255, A, (W, H), flags=cv2.INTER_NEAREST) > 127)
         grown = cv2.dilate(sil.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ring + 1,) * 2)) > 0
         near = cv2.dilate(sil.astype(np.uint8), k3, iterations=2) > 0
         bg = grown & ~near
@@ -226,8 +241,9 @@ class RegionRefiner:
         pf = (hf / (hf + hb)).astype(np.float32)
         return pf[code], sil
 
-    def refine(self, image: np.ndarray, model, R, t, K) -> RefineResult:
-        """Refine the pose (R, t: model -> OpenCV camera, mm) of ``model`` in ``image``."""
+    def refine(self, image: np.ndarray, model, R, t, K, others=()) -> RefineResult:
+        """Refine the pose (R, t: model -> OpenCV camera, mm) of ``model`` in ``image``; ``others``:
+        ``(model, R, t)`` of the other objects in the image, which may hide it (``occlusion``)."""
         import cv2
 
         cfg = self.config
@@ -248,11 +264,12 @@ class RegionRefiner:
                 break
             centre_px = (K @ c)[:2] / c[2]
             diameter_px = float(K[0, 0] * model.diameter / c[2])
-            got = self._contour(model, R, t, K, centre_px, diameter_px)
+            got = self._contour(model, R, t, K, centre_px, diameter_px, others)
             if got is None:
                 break
-            X, nv, edge, (mask, A) = got
-            pf, sil = self._posterior(image, mask, A, diameter_px)
+            X, nv, edge, (mask, A, a), occ = got
+            # inside the silhouette, where another object is the front-most: not this object's colours
+            pf, sil = self._posterior(image, mask, A, diameter_px, None if occ is None else (occ > 0) & (mask > 0))
             if pf is None:
                 break
             step = max(cfg.min_step, scale * diameter_px / L)
@@ -270,6 +287,16 @@ class RegionRefiner:
             # inner samples past the far side of the silhouette see background again: not this edge's
             on_sil = cv2.remap(sil.astype(np.float32), mx, my, cv2.INTER_NEAREST) > 0.5
             valid = inside_img & ((s_grid[None, :] >= 0) | on_sil)
+            if occ is not None:  # samples where another object lies in front of this contour: no evidence
+                sv = occ.shape[0]
+                pv = a * (pos - centre_px) + (sv - 1) / 2
+                iv = np.round(pv).astype(int)
+                inv = (iv >= 0).all(-1) & (iv < sv).all(-1)
+                d = np.zeros(inv.shape, np.float32)
+                d[inv] = occ[iv[inv][:, 1], iv[inv][:, 0]]
+                occluded = (d > 0) & (d < X[:, 2:3] - 0.05 * float(model.diameter))
+                valid &= ~occluded
+                valid &= ~occluded[:, L:L + 1]  # the contour point itself hidden: the whole line
             x = s_grid[None, None, :] - d_grid[None, :, None]  # (1, D, S)
             hf = 0.5 - cfg.amplitude * np.tanh(x / (2.0 * cfg.slope))
             pp = p[:, None, :].astype(np.float64)

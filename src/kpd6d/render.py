@@ -125,14 +125,26 @@ def linear_vertex_colors(colors: np.ndarray) -> np.ndarray:
     return out
 
 
+def _destroy_egl_context(platform) -> None:
+    """pyrender's ``EGLPlatform.delete_context`` without its ``eglTerminate`` of the shared display."""
+    from OpenGL.EGL import eglDestroyContext
+
+    if platform._egl_display is not None and platform._egl_context is not None:
+        eglDestroyContext(platform._egl_display, platform._egl_context)
+    platform._egl_context = None
+
+
 class Renderer:
     """Renders meshes at OpenCV poses with intrinsics ``K`` into (width, height) images.
 
     One OpenGL context per instance (and per process: create it after forking). Meshes are
     converted to pyrender once and cached by identity. ``antialias=False`` renders into a
     single-sampled framebuffer instead of pyrender's 4x multisampled one (aliased colour edges;
-    about 2.5x faster colour passes and cheaper depth / segmentation passes on llvmpipe).
+    about 2.5x faster colour passes and cheaper depth / segmentation passes on llvmpipe). Several
+    renderers may be open at once; closing one leaves the others working.
     """
+
+    _open = 0  # renderers of this process not yet closed
 
     def __init__(self, width: int = LINEMOD_IMAGE_SIZE[0], height: int = LINEMOD_IMAGE_SIZE[1],
                  K: np.ndarray = LINEMOD_K, znear: float = 10.0, zfar: float = 20000.0,
@@ -153,6 +165,7 @@ class Renderer:
             ) from exc
         # id(trimesh) -> (pyrender mesh, trimesh (kept alive so the id stays unique), base roughness
         # per primitive). Cached meshes stay uploaded to the GL context (see ``render``).
+        Renderer._open += 1
         self._cache: dict[int, tuple] = {}
         if not self.antialias:
             self._single_sample_framebuffer()
@@ -209,15 +222,17 @@ class Renderer:
             prr.glRenderbufferStorageMultisample = orig
 
     def close(self) -> None:
-        if getattr(self, "_renderer", None) is not None:
-            r, self._renderer = self._renderer, None
-            try:
-                r.delete()
-            except Exception:
-                # pyrender's EGL teardown terminates the display every context of the process shares: with
-                # two renderers open (e.g. a scene renderer and a pose refiner's), the second one's delete
-                # cannot make its context current any more; its resources go with the display
-                pass
+        if getattr(self, "_renderer", None) is None:
+            return
+        r, self._renderer = self._renderer, None
+        Renderer._open -= 1
+        platform = getattr(r, "_platform", None)
+        if Renderer._open > 0 and platform is not None and hasattr(platform, "_egl_display"):
+            # pyrender's EGL teardown terminates the display, which every context of the process shares:
+            # the renderers still open (e.g. a scene renderer beside a pose refiner's) would stop working.
+            # Destroy this context only; the last renderer to close terminates the display.
+            platform.delete_context = lambda: _destroy_egl_context(platform)
+        r.delete()
 
     def __del__(self) -> None:  # pragma: no cover
         try:

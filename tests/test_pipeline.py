@@ -412,7 +412,7 @@ def test_verify_crops_verifies_with_few_crops_then_estimates_the_kept_with_crop_
         np.testing.assert_allclose(a["t"], b["t"], atol=1e-6)
         assert a["confidence"] == pytest.approx(b["confidence"])
     assert fast.last_timings["kpd"] > 0
-    assert check_candidates({"per_object": 5, "verify_crops": 1}) == (5, 0, 1.0, 1)
+    assert check_candidates({"per_object": 5, "verify_crops": 1}) == (5, 0, 1.0, 1, 0.0)
     assert candidates_record(5, 0, 1.0, 1) == {"per_object": 5, "verify_crops": 1}
     for bad in (0, 10, 1.5):
         with pytest.raises(ValueError, match=r"candidates.verify_crops must be an integer (>= 1|from 1 to 9)"):
@@ -449,7 +449,7 @@ def test_candidate_rank_weighs_the_detection_score():
         [{"obj_id": 3, "score": 0.2, "confidence": 0.5}, {"obj_id": 3, "score": 0.4, "confidence": 0.25}], 1.0
     )[0]["score"] == 0.4
 
-    assert check_candidates({"per_object": 5, "detector_weight": 0}) == (5, 0, 0.0, None)
+    assert check_candidates({"per_object": 5, "detector_weight": 0}) == (5, 0, 0.0, None, 0.0)
     assert candidates_record(5, 0, 1.0) == 5 and candidates_record(5, 0, 0.0) == {"per_object": 5, "detector_weight": 0.0}
     assert candidates_record(*check_candidates({"per_object": 2, "any_class": 1, "detector_weight": 2})) == {
         "per_object": 2, "any_class": 1, "detector_weight": 2.0}
@@ -458,7 +458,7 @@ def test_candidate_rank_weighs_the_detection_score():
     for bad in (-1, float("nan"), "high", True):
         with pytest.raises(ValueError, match=r"evaluate.candidates.detector_weight must be a finite number >= 0, got"):
             check_candidates({"per_object": 2, "detector_weight": bad}, key="evaluate.candidates")
-    with pytest.raises(ValueError, match=r"known: \['any_class', 'detector_weight', 'per_object', 'verify_crops'\]"):
+    with pytest.raises(ValueError, match=r"known: \['any_class', 'detector_weight', 'per_object', 'refine_weight', 'verify_crops'\]"):
         check_candidates({"weight": 1})
 
 
@@ -520,8 +520,8 @@ def test_any_class_candidates_recover_a_misclassified_object():
     dets = [{"image_index": 0, "obj_id": o, "score": s, "box": [s] * 4} for o, s in ((1, 0.9), (2, 0.5), (2, 0.4))]
     got = [(d["obj_id"], d["score"]) for d in top_candidates(dets, 1, any_class=2, obj_ids=[1, 2, 3])]
     assert got == [(1, 0.9), (2, 0.5), (2, 0.9), (3, 0.9), (1, 0.5), (3, 0.5)]
-    assert check_candidates(None) == (1, 0, 1.0, None) and check_candidates(4) == (4, 0, 1.0, None)
-    assert check_candidates({"any_class": 2}) == (1, 2, 1.0, None) and candidates_record(1, 2) == {"per_object": 1, "any_class": 2}
+    assert check_candidates(None) == (1, 0, 1.0, None, 0.0) and check_candidates(4) == (4, 0, 1.0, None, 0.0)
+    assert check_candidates({"any_class": 2}) == (1, 2, 1.0, None, 0.0) and candidates_record(1, 2) == {"per_object": 1, "any_class": 2}
     assert candidate_options({"per_object": 1, "any_class": 2}, "det.pt") == {
         "candidates": {"per_object": 1, "any_class": 2}, "one_per_object": False}
     assert candidate_options({"per_object": 3, "any_class": 0}, "det.pt") == {"candidates": 3, "one_per_object": False}
@@ -636,3 +636,63 @@ def test_a_refiner_runs_on_the_final_poses_of_predict_batch_and_predict_boxes():
     assert "refined" not in pipe.predict_batch(_images(), LINEMOD_K, targets)[0][0]
     with pytest.raises(PipelineInputError, match=r"refiner must have \.refine_poses"):
         pipe.set_refiner(object())
+
+
+class EvidenceRefiner:
+    """A refiner that leaves poses where they are and gives each an ``evidence`` from ``rule(pose)``;
+    records the (obj_id, score) of the poses of each call."""
+
+    def __init__(self, rule):
+        self.rule, self.calls = rule, []
+
+    def refine_poses(self, images, Ks, poses):
+        self.calls.append([[(p["obj_id"], round(p["score"], 3)) for p in ps] for ps in poses])
+        for ps in poses:
+            for p in ps:
+                p["evidence"], p["refined"] = self.rule(p), False
+        return poses
+
+
+def test_candidates_ranked_by_refinement_evidence():
+    """candidates {per_object: 2, verify_crops: 1, refine_weight: w}: every candidate goes through the
+    refiner, its evidence ** w joins its rank, and the kept pose, estimated again with crop_tta's crops,
+    is refined again. Object 1 has a second box, shifted by a few pixels and scored higher (0.95 against
+    0.9); both give good poses, so the rank follows the score with w = 0. The refiner here favours the
+    0.9 box (evidence 1 against 0.01): with w > 0 that one is kept."""
+    from kpd6d.pnp.estimator import best_candidates, candidates_record
+
+    kp3d, gt, targets = _scene(np.random.default_rng(5))
+    t0 = targets[0]
+    i1 = int(np.flatnonzero(t0["obj_ids"] == 1)[0])
+    twin = t0["boxes"][i1] + np.array([3.0, 2.0, 0.0, 0.0])
+    with_twin = [{"boxes": np.vstack([twin, t0["boxes"]]), "obj_ids": np.concatenate([[1], t0["obj_ids"]]),
+                  "scores": np.concatenate([[0.95], t0["scores"]])}, targets[1]]
+    assert t0["scores"][i1] == pytest.approx(0.9)
+
+    def run(weight):
+        pipe = PosePipeline(DETECTORS.build("oracle", one_per_object=False), FakeKPD(kp3d, gt), pnp="sqpnp",
+                            top_l=None, device="cpu", crop_tta=3,
+                            candidates={"per_object": 2, "verify_crops": 1, "refine_weight": weight})
+        ref = EvidenceRefiner(lambda p: 1.0 if abs(p["score"] - 0.9) < 1e-6 and p["obj_id"] == 1 else 0.01)
+        pipe.set_refiner(ref)
+        return pipe.predict_batch(_images(), LINEMOD_K, with_twin), ref, pipe
+
+    out, ref, pipe = run(0.0)
+    assert [p["score"] for p in out[0] if p["obj_id"] == 1] == [pytest.approx(0.95)]  # the score decides
+    assert len(ref.calls) == 1 and sum(map(len, ref.calls[0])) == 3  # only the kept poses refined
+    out, ref, pipe = run(2.0)
+    assert [p["score"] for p in out[0] if p["obj_id"] == 1] == [pytest.approx(0.9)]  # the evidence decides
+    assert len(ref.calls) == 2 and sum(map(len, ref.calls[0])) == 4 and sum(map(len, ref.calls[1])) == 3
+    assert pipe.last_timings["refine"] > 0
+    # the rank itself: confidence x score ** w_det x evidence ** w_ref
+    poses = [{"obj_id": 1, "score": 0.9, "confidence": 0.6, "evidence": 0.2},
+             {"obj_id": 1, "score": 0.5, "confidence": 0.5, "evidence": 0.9}]
+    assert best_candidates(poses)[0]["score"] == 0.9 and best_candidates(poses, 1.0, 1.0)[0]["score"] == 0.5
+    no_ref = PosePipeline(DETECTORS.build("oracle", one_per_object=False), FakeKPD(kp3d, gt), device="cpu",
+                          candidates={"per_object": 2, "refine_weight": 1.0})
+    with pytest.raises(PipelineInputError, match="refine_weight=1 ranks the candidates by their refinement"):
+        no_ref.predict_batch(_images(), LINEMOD_K, targets)
+    with pytest.raises(PipelineInputError, match=r"candidates\.refine_weight must be a finite number >= 0"):
+        PosePipeline(DETECTORS.build("oracle"), FakeKPD(kp3d, gt), device="cpu",
+                     candidates={"per_object": 2, "refine_weight": -1})
+    assert candidates_record(2, 0, 1.0, 1, 2.0) == {"per_object": 2, "verify_crops": 1, "refine_weight": 2.0}

@@ -141,3 +141,13 @@ def test_occlusion_masks_the_lines_another_object_hides(scene_renderer):
         ref.close()
     assert errors[True][0] < 0.8 and errors[True][1] < 3.0, errors
     assert errors[True][0] < errors[False][0], errors
+
+
+def test_evidence_is_high_on_the_object_and_low_on_background(scene_renderer, refiner):
+    """``evidence``: the share of the contour the image confirms. At the true pose most of it; the same
+    object placed on the background (120 px away) little."""
+    model = procedural_objects(obj_ids=[1])[0]
+    image, R, t = _scene(scene_renderer, model, seed=3)
+    on = refiner.refine(image, model, R, t, LINEMOD_K)
+    off = refiner.refine(image, model, R, t + np.array([-160.0, 90.0, 0.0]), LINEMOD_K)
+    assert 0.0 <= off.evidence < 0.5 * on.evidence and on.evidence > 0.5, (on.evidence, off.evidence)

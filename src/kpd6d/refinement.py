@@ -88,6 +88,7 @@ class RefineResult:
     t: np.ndarray
     ok: bool
     lines: int = 0  # informative lines in the last iteration
+    evidence: float = 0.0  # how much of the contour the image confirms, 0..1 (:meth:`RegionRefiner.refine`)
     history: list = field(default_factory=list)  # (R, t) after each step
 
 
@@ -127,8 +128,9 @@ class RegionRefiner:
 
     def refine_poses(self, images, Ks, poses: list[list[dict]]) -> list[list[dict]]:
         """Refine, in place, each ``ok`` pose dict of ``poses`` (one list per image of ``images``,
-        uint8 RGB; ``Ks`` (B, 3, 3)). Each pose dict gets ``refined`` (bool: the pose moved); a pose
-        whose refinement found too little evidence keeps the estimate it had."""
+        uint8 RGB; ``Ks`` (B, 3, 3)). Each pose dict gets ``refined`` (bool: the pose moved) and
+        ``evidence`` (the share of its contour the image confirms, 0..1, measured at the last step); a
+        pose whose refinement found too little evidence keeps the estimate it had."""
         for b, plist in enumerate(poses):
             todo = [p for p in plist if p.get("ok")]
             if not todo:
@@ -147,6 +149,7 @@ class RegionRefiner:
                 others = [(self.models[int(q["obj_id"])], q["R"], q["t"]) for q in todo
                           if q is not p] if self.config.occlusion else ()
                 res = self.refine(image, self.models[int(p["obj_id"])], p["R"], p["t"], Ks[b], others=others)
+                p["evidence"] = res.evidence
                 if res.ok:
                     p["R"], p["t"], p["refined"] = res.R, res.t, True
         return poses
@@ -257,7 +260,7 @@ class RegionRefiner:
         s_grid = np.arange(-L, L + 1, dtype=np.float64)  # sample positions, in steps, outward positive
         d_grid = np.arange(-(L - 1), L - 1 + 0.25, 0.5)  # candidate contour positions
         prior = np.diag([1.0 / cfg.prior_rotation ** 2] * 3 + [1.0 / cfg.prior_translation ** 2] * 3)
-        history, lines, ok = [], 0, False
+        history, lines, ok, evidence = [], 0, False, 0.0
         for scale in cfg.scales:
             c = R @ centre_m + t
             if c[2] <= 1e-3:
@@ -309,6 +312,9 @@ class RegionRefiner:
             var = prob @ (d_grid ** 2) - mu ** 2
             use = (valid.sum(1) >= L) & (np.abs(mu) < L - 2) & (var < (0.5 * L) ** 2)
             lines = int(use.sum())
+            # the share of the contour with an image edge where it is now (within 1.5 steps), over all
+            # its lines (hidden, out-of-image and uninformative ones count as none)
+            evidence = float(prob[use][:, np.abs(d_grid) <= 1.5].sum()) / max(len(X), 1)
             if lines < cfg.min_lines:
                 break
             mu_px = mu[use] * step
@@ -330,7 +336,7 @@ class RegionRefiner:
             t = dR @ (t - c) + c + theta[3:]
             history.append((R.copy(), t.copy()))
             ok = True
-        return RefineResult(R=R, t=t, ok=ok, lines=lines, history=history)
+        return RefineResult(R=R, t=t, ok=ok, lines=lines, evidence=evidence, history=history)
 
 
 @REFINERS.register("none")

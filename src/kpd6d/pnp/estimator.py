@@ -136,6 +136,8 @@ class CandidateSpec(NamedTuple):
     detector_weight: float = DETECTOR_WEIGHT  # a candidate's rank: pose confidence x detection score ** this
     verify_crops: int | None = None  # KPD crops per candidate while verifying (None: crop_tta's); the kept
     #                                  pose is then estimated again with crop_tta crops
+    refine_weight: float = 0.0  # > 0: every candidate's pose goes through the refiner first, and its rank is
+    #                             also multiplied by its refinement evidence ** this
 
     @property
     def verifies(self) -> bool:
@@ -147,8 +149,9 @@ def check_candidates(candidates: Any, error: type[Exception] = ValueError,
                      key: str = "candidates") -> CandidateSpec:
     """``candidates`` as a :class:`CandidateSpec`: an int n >= 1 is ``(n, 0, DETECTOR_WEIGHT, None)`` (None:
     ``(1, 0, DETECTOR_WEIGHT, None)``); a mapping ``{per_object: n, any_class: m, detector_weight: w,
-    verify_crops: c}`` (n >= 1, m >= 0, w >= 0 finite, c from 1 to len(CROP_TTA_JITTER) or None; any may be
-    left out) gives all four. Anything else raises ``error`` naming ``key`` and the value."""
+    verify_crops: c, refine_weight: r}`` (n >= 1, m >= 0, w and r >= 0 finite, c from 1 to
+    len(CROP_TTA_JITTER) or None; any may be left out) gives all five. Anything else raises ``error``
+    naming ``key`` and the value."""
     def count(v, low: int, name: str) -> int:
         if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low:
             raise error(f"{name} must be an integer >= {low}, got {v!r}")
@@ -161,21 +164,22 @@ def check_candidates(candidates: Any, error: type[Exception] = ValueError,
         unknown = sorted(set(map(str, spec)) - set(CandidateSpec._fields))
         if unknown:
             raise error(f"{key}: unknown key(s) {unknown}; known: {sorted(CandidateSpec._fields)}")
-        w = spec.get("detector_weight", DETECTOR_WEIGHT)
-        if isinstance(w, bool) or not _is_number(w) or not (math.isfinite(float(w)) and float(w) >= 0):
-            raise error(f"{key}.detector_weight must be a finite number >= 0, got {w!r}")
+        w, r = (spec.get(name, default) for name, default in (("detector_weight", DETECTOR_WEIGHT), ("refine_weight", 0.0)))
+        for name, v in (("detector_weight", w), ("refine_weight", r)):
+            if isinstance(v, bool) or not _is_number(v) or not (math.isfinite(float(v)) and float(v) >= 0):
+                raise error(f"{key}.{name} must be a finite number >= 0, got {v!r}")
         c = spec.get("verify_crops")
         return CandidateSpec(count(spec.get("per_object", 1), 1, f"{key}.per_object"),
                              count(spec.get("any_class", 0), 0, f"{key}.any_class"), float(w),
-                             None if c is None else _crop_count(c, f"{key}.verify_crops", error))
+                             None if c is None else _crop_count(c, f"{key}.verify_crops", error), float(r))
     return CandidateSpec(count(candidates, 1, key))
 
 
 def candidates_record(per_object: int, any_class: int = 0, detector_weight: float = DETECTOR_WEIGHT,
-                      verify_crops: int | None = None) -> Any:
+                      verify_crops: int | None = None, refine_weight: float = 0.0) -> Any:
     """The plain value of a candidates setting: n, or the mapping of the keys that differ from n's
-    defaults (``{per_object: n, any_class: m, detector_weight: w, verify_crops: c}``)."""
-    if any_class == 0 and detector_weight == DETECTOR_WEIGHT and verify_crops is None:
+    defaults (``{per_object: n, any_class: m, detector_weight: w, verify_crops: c, refine_weight: r}``)."""
+    if any_class == 0 and detector_weight == DETECTOR_WEIGHT and verify_crops is None and not refine_weight:
         return int(per_object)
     out: dict[str, Any] = {"per_object": int(per_object)}
     if any_class:
@@ -184,6 +188,8 @@ def candidates_record(per_object: int, any_class: int = 0, detector_weight: floa
         out["detector_weight"] = float(detector_weight)
     if verify_crops is not None:
         out["verify_crops"] = int(verify_crops)
+    if refine_weight:
+        out["refine_weight"] = float(refine_weight)
     return out
 
 
@@ -238,17 +244,21 @@ def top_candidates(dets: list[dict], n: int, any_class: int = 0, obj_ids: Any = 
     return out
 
 
-def best_candidates(poses: list[dict], detector_weight: float = DETECTOR_WEIGHT) -> list[dict]:
+def best_candidates(poses: list[dict], detector_weight: float = DETECTOR_WEIGHT, refine_weight: float = 0.0) -> list[dict]:
     """One pose per object of one image: among its candidates, the one with the highest pose
     ``confidence`` times its detection ``score`` to the power ``detector_weight`` (0: the pose
-    confidence alone; a failed pose has confidence 0), ties to the higher detection score; in score
+    confidence alone; a failed pose has confidence 0) times its refinement ``evidence`` (0 when
+    absent) to the power ``refine_weight`` (0: not used), ties to the higher detection score; in score
     order. The kept pose records how many candidates it was chosen from (``candidates``)."""
     best: dict[int, tuple] = {}
     n: dict[int, int] = {}
     for p in poses:
         o = p["obj_id"]
         n[o] = n.get(o, 0) + 1
-        key = (p["confidence"] * max(p["score"], 0.0) ** detector_weight, p["score"])  # 0 ** 0 = 1
+        rank = p["confidence"] * max(p["score"], 0.0) ** detector_weight  # 0 ** 0 = 1
+        if refine_weight:
+            rank *= max(p.get("evidence", 0.0), 0.0) ** refine_weight
+        key = (rank, p["score"])
         if o not in best or key > best[o][0]:
             best[o] = (key, p)
     return [{**p, "candidates": n[p["obj_id"]]} for _, p in sorted(best.values(), key=lambda kp: -kp[1]["score"])]
@@ -365,17 +375,28 @@ class PoseEstimatorBase:
         Ks = check_intrinsics(K, self._num_images(x), self.input_error)
         dets = self._detect(x, targets)
         spec = self.candidate_spec
+        refined_all = spec.verifies and spec.refine_weight > 0
+        if refined_all and self.refiner is None:
+            raise self.input_error(f"candidates.refine_weight={spec.refine_weight:g} ranks the candidates by their "
+                                   "refinement: it needs a refiner (refiner=region)")
         if spec.verifies:
             dets = top_candidates(dets, spec.per_object, spec.any_class, sorted(self.kpd.keypoints_3d))
         t1 = time.perf_counter()
         crops = spec.verify_crops if spec.verifies and spec.verify_crops is not None else self.crop_tta
         out = self._estimate(x, Ks, [d["box"] for d in dets], [d["image_index"] for d in dets],
                              [d["obj_id"] for d in dets], [d["score"] for d in dets], crops)
+        refine_s = 0.0
         if spec.verifies:
-            out = [best_candidates(poses, spec.detector_weight) for poses in out]
+            if refined_all:  # every candidate refined, its evidence part of its rank
+                out = self._refine(images, Ks, out)
+                refine_s = self.last_timings["refine"]
+            out = [best_candidates(poses, spec.detector_weight, spec.refine_weight) for poses in out]
             if crops != self.crop_tta:  # the kept candidates again, with crop_tta crops
                 out = self._reestimate(x, Ks, out)
-        out = self._refine(images, Ks, out)
+        if not refined_all or crops != self.crop_tta:  # (else the kept poses are refined already)
+            out = self._refine(images, Ks, out)
+            if refine_s:
+                self.last_timings["refine"] += refine_s
         self.last_timings["detect"] = t1 - t0
         self.last_timings["total"] = time.perf_counter() - t0
         return out

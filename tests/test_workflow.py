@@ -142,6 +142,7 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     assert full.data.options.palette == "natural" and full.data.options.distractor_refresh == 100
     assert full.data.options.photometric == {"exposure": [0.7, 2.5], "saturation": [0.8, 1.5]}
     assert full.kpd_stage.kpd.finetune.freeze_stages == 2 and not full.kpd_stage.kpd.finetune.freeze_bn
+    assert full.evaluate.refiner.name == "region" and full.evaluate.refiner.prior_rotation == 0.02
 
     run = tmp_path / "run"
     m = run_experiment(cfg, run)
@@ -170,6 +171,11 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     assert json.loads((run / "calibration" / "metrics.json").read_text())["run"]["split"] == "val"
     for ev in ("eval", "eval_oracle"):
         assert json.loads((run / ev / "metrics.json").read_text())["run"]["depth_calibration"] == str(cal)
+        # both real-frame evaluations refine with the region refiner on the dataset's meshes; the depth
+        # calibration is fitted on the PnP poses (no refiner there)
+        assert json.loads((run / ev / "settings.json").read_text())["refiner"]["name"] == "region"
+        assert "- refiner: `{'name': 'region'" in (run / ev / "report.md").read_text()
+    assert "refiner" not in json.loads((run / "calibration" / "settings.json").read_text())
 
 
 @pytest.mark.slow

@@ -61,8 +61,8 @@ class RegionRefineConfig:
     hist_bins: int = 16
     amplitude: float = 0.43
     slope: float = 0.5
-    prior_rotation: float = 0.2
-    prior_translation: float = 30.0
+    prior_rotation: float = 0.02
+    prior_translation: float = 10.0
     min_lines: int = 20
     viewport: int = 192
     ring: float = 0.15  # background ring width, as a fraction of the projected diameter

@@ -151,3 +151,31 @@ def test_evidence_is_high_on_the_object_and_low_on_background(scene_renderer, re
     on = refiner.refine(image, model, R, t, LINEMOD_K)
     off = refiner.refine(image, model, R, t + np.array([-160.0, 90.0, 0.0]), LINEMOD_K)
     assert 0.0 <= off.evidence < 0.5 * on.evidence and on.evidence > 0.5, (on.evidence, off.evidence)
+
+
+def test_contour_jacobian_matches_finite_differences_of_the_pose_step():
+    """The Gauss-Newton Jacobian against central differences of projecting model points after
+    apply_pose_step (an independent computation: project_points on the stepped pose)."""
+    from kpd6d.geometry import project_points
+    from kpd6d.refinement import apply_pose_step, contour_jacobian
+
+    rng = np.random.default_rng(0)
+    R, t = pose_from_view(0.4, 0.6, 700.0, 0.2)
+    t = t + np.array([40.0, -25.0, 0.0])
+    pts_m = rng.uniform(-60, 60, (12, 3))
+    X = pts_m @ R.T + t
+    centre = R @ np.array([5.0, -3.0, 2.0]) + t
+    normals = rng.normal(size=(12, 2))
+    normals /= np.linalg.norm(normals, axis=1, keepdims=True)
+    J = contour_jacobian(X, normals, centre, LINEMOD_K)
+    eps = 1e-6
+    for k in range(6):
+        step = np.zeros(6)
+        step[k] = eps
+        plus = project_points(pts_m, LINEMOD_K, *apply_pose_step(R, t, centre, step))
+        minus = project_points(pts_m, LINEMOD_K, *apply_pose_step(R, t, centre, -step))
+        numeric = np.sum((plus - minus) / (2 * eps) * normals, axis=1)
+        np.testing.assert_allclose(J[:, k], numeric, rtol=1e-5, atol=1e-6)
+    # a finite step: rotation about the centre leaves the centre where it is
+    R2, t2 = apply_pose_step(R, t, centre, np.array([0.1, -0.2, 0.3, 0.0, 0.0, 0.0]))
+    np.testing.assert_allclose(R2 @ np.array([5.0, -3.0, 2.0]) + t2, centre, atol=1e-9)

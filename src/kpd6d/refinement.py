@@ -99,6 +99,27 @@ def _so3_exp(w: np.ndarray) -> np.ndarray:
     return rotation_about_axis(w / angle, angle)
 
 
+def contour_jacobian(X: np.ndarray, normals: np.ndarray, centre: np.ndarray, K: np.ndarray) -> np.ndarray:
+    """(n, 6): how far each projected point of ``X`` (n, 3, camera frame, mm) moves along its image
+    ``normals`` (n, 2, unit) per unit of the pose step ``theta = (w, v)`` of :func:`apply_pose_step`
+    (a rotation w about ``centre``, then a translation v), at theta = 0."""
+    z = X[:, 2]
+    dpi = np.zeros((len(X), 2, 3))  # d pi / dX
+    dpi[:, 0, 0] = K[0, 0] / z
+    dpi[:, 0, 2] = -K[0, 0] * X[:, 0] / z ** 2
+    dpi[:, 1, 1] = K[1, 1] / z
+    dpi[:, 1, 2] = -K[1, 1] * X[:, 1] / z ** 2
+    g = np.einsum("ni,nij->nj", normals, dpi)  # d(normal displacement) / dX
+    return np.concatenate([np.cross(X - centre, g), g], axis=1)  # d/dw of (w x (X - c)) . g = (X - c) x g
+
+
+def apply_pose_step(R: np.ndarray, t: np.ndarray, centre: np.ndarray, theta: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The pose (R, t) after the step ``theta = (w, v)``: every camera-frame point X goes to
+    ``exp(w) (X - centre) + centre + v``."""
+    dR = _so3_exp(np.asarray(theta[:3], np.float64))
+    return dR @ R, dR @ (t - centre) + centre + np.asarray(theta[3:], np.float64)
+
+
 class RegionRefiner:
     """Refines poses of :class:`~kpd6d.objects.ObjectModel` s in an RGB image (uint8, H x W x 3) seen
     by a camera ``K``. ``models``: obj_id -> model, for :meth:`refine_poses` (a pipeline's pose dicts
@@ -319,21 +340,10 @@ class RegionRefiner:
                 break
             mu_px = mu[use] * step
             w = 1.0 / (var[use] * step ** 2 + step ** 2 / 12.0)
-            Xu, n2 = X[use], nv[use]
-            z = Xu[:, 2]
-            dpi = np.zeros((len(Xu), 2, 3))
-            dpi[:, 0, 0] = K[0, 0] / z
-            dpi[:, 0, 2] = -K[0, 0] * Xu[:, 0] / z ** 2
-            dpi[:, 1, 1] = K[1, 1] / z
-            dpi[:, 1, 2] = -K[1, 1] * Xu[:, 1] / z ** 2
-            g = np.einsum("ni,nij->nj", n2, dpi)  # d(normal displacement) / dX, (n, 3)
-            r = Xu - c
-            J = np.concatenate([np.cross(r, g), g], axis=1)  # rotation about c, then translation
+            J = contour_jacobian(X[use], nv[use], c, K)
             Hm = (J * w[:, None]).T @ J + prior
             theta = np.linalg.solve(Hm, (J * w[:, None]).T @ mu_px)
-            dR = _so3_exp(theta[:3])
-            R = dR @ R
-            t = dR @ (t - c) + c + theta[3:]
+            R, t = apply_pose_step(R, t, c, theta)
             history.append((R.copy(), t.copy()))
             ok = True
         return RefineResult(R=R, t=t, ok=ok, lines=lines, evidence=evidence, history=history)

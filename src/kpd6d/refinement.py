@@ -31,7 +31,7 @@ from typing import Any
 
 import numpy as np
 
-from kpd6d.geometry import rotation_about_axis
+from kpd6d.geometry import backproject, project_points, rotation_about_axis
 from kpd6d.registry import REFINERS, build_from_cfg
 
 __all__ = ["RefineResult", "RegionRefineConfig", "RegionRefiner", "build_refiner"]
@@ -227,7 +227,7 @@ class RegionRefiner:
         p = np.concatenate(pts)
         nv = np.concatenate(nrm)
         z = depth[p[:, 1].astype(int), p[:, 0].astype(int)].astype(np.float64)
-        X = np.linalg.solve(Kv, np.concatenate([p, np.ones((len(p), 1))], 1).T).T * z[:, None]
+        X = backproject(p, z, Kv)
         A = np.array([[1.0 / a, 0.0, centre_px[0] - (s - 1) / 2 / a],
                       [0.0, 1.0 / a, centre_px[1] - (s - 1) / 2 / a]])  # viewport px -> image px
         occ = None
@@ -300,9 +300,7 @@ class RegionRefiner:
             if step > 1.5:  # each sample stands for its stretch of the line
                 kk = round(step) | 1
                 pf = cv2.blur(pf, (kk, kk))
-            uv = (K @ X.T).T
-            uv = uv[:, :2] / uv[:, 2:3]
-            base = uv + edge * nv
+            base = project_points(X, K) + edge * nv
             pos = base[:, None, :] + (s_grid[None, :, None] * step) * nv[:, None, :]  # (n, 2L+1, 2)
             inside_img = (pos[..., 0] >= 0) & (pos[..., 0] <= W - 1) & (pos[..., 1] >= 0) & (pos[..., 1] <= H - 1)
             mx = np.clip(pos[..., 0], 0, W - 1).astype(np.float32)

@@ -388,15 +388,15 @@ class PoseEstimatorBase:
         refine_s = 0.0
         if spec.verifies:
             if refined_all:  # every candidate refined, its evidence part of its rank
-                out = self._refine(images, Ks, out)
-                refine_s = self.last_timings["refine"]
+                out, refine_s = self._refine(images, Ks, out)
             out = [best_candidates(poses, spec.detector_weight, spec.refine_weight) for poses in out]
             if crops != self.crop_tta:  # the kept candidates again, with crop_tta crops
                 out = self._reestimate(x, Ks, out)
         if not refined_all or crops != self.crop_tta:  # (else the kept poses are refined already)
-            out = self._refine(images, Ks, out)
-            if refine_s:
-                self.last_timings["refine"] += refine_s
+            out, dt = self._refine(images, Ks, out)
+            refine_s += dt
+        if self.refiner is not None:
+            self.last_timings["refine"] = refine_s
         self.last_timings["detect"] = t1 - t0
         self.last_timings["total"] = time.perf_counter() - t0
         return out
@@ -428,20 +428,20 @@ class PoseEstimatorBase:
         Ks = check_intrinsics(K, n, self.input_error)
         boxes, obj_ids, img_idx, scores = check_box_inputs(boxes, obj_ids, image_index, scores, n,
                                                            self.kpd.keypoints_3d, error=self.input_error)
-        out = self._refine(images, Ks, self._estimate(x, Ks, boxes.tolist(), img_idx, obj_ids, scores))
+        out, refine_s = self._refine(images, Ks, self._estimate(x, Ks, boxes.tolist(), img_idx, obj_ids, scores))
+        if self.refiner is not None:
+            self.last_timings["refine"] = refine_s
         self.last_timings["detect"] = 0.0
         self.last_timings["total"] = time.perf_counter() - t0
         return out
 
     # -- the shared steps -------------------------------------------------------------------------
-    def _refine(self, images, Ks: np.ndarray, poses: list[list[dict]]) -> list[list[dict]]:
-        """:attr:`refiner` on the poses (timed as ``last_timings["refine"]``)."""
+    def _refine(self, images, Ks: np.ndarray, poses: list[list[dict]]) -> tuple[list[list[dict]], float]:
+        """:attr:`refiner` on the poses; (poses, seconds it took)."""
         if self.refiner is None:
-            return poses
+            return poses, 0.0
         t0 = time.perf_counter()
-        poses = self.refiner.refine_poses(images, Ks, poses)
-        self.last_timings["refine"] = time.perf_counter() - t0
-        return poses
+        return self.refiner.refine_poses(images, Ks, poses), time.perf_counter() - t0
 
     def _detect(self, x, targets) -> list[dict]:
         """The detections of the batch ``x`` the KPD can localise, flat: box, image_index, obj_id, score."""

@@ -699,3 +699,70 @@ def test_natural_palette_backgrounds_are_muted():
     assert mean_sat(ProceduralBackgrounds("natural")) < 0.7 * mean_sat(ProceduralBackgrounds())
     with pytest.raises(ValueError, match="palette must be one of"):
         ProceduralBackgrounds("vivid")
+
+
+def test_object_coloured_distractors_carry_the_objects_colour_layout():
+    """``distractor_object_colors``: each primitive vertex takes the colour of the nearest vertex of the
+    turned object (checked against a brute-force nearest neighbour with the same rotation), so the
+    object's colour regions stay regions on the primitive; the fraction of the pool, its determinism,
+    and the errors."""
+    import trimesh
+    from scipy.spatial.transform import Rotation
+
+    from kpd6d.synth.distractors import color_source, distractor_pool, transfer_colors
+
+    obj = trimesh.creation.icosphere(subdivisions=3, radius=40.0)
+    v = np.asarray(obj.vertices)
+    rgba = np.where(v[:, :1] > 0, [[200, 30, 30, 255]], [[20, 40, 220, 255]]).astype(np.uint8)  # red / blue halves
+    obj.visual = trimesh.visual.ColorVisuals(mesh=obj, vertex_colors=rgba)
+    src = color_source(obj)
+    assert src[0].min() == 0.0 and src[0].max() == 1.0 and src[1].shape == (len(v), 3)
+
+    box = trimesh.creation.box(extents=(1.0, 0.5, 0.8)).subdivide().subdivide().subdivide()
+    got = transfer_colors(np.random.default_rng(3), box.vertices, src)
+    R = Rotation.random(random_state=np.random.default_rng(3)).as_matrix()
+    sv = (src[0] - 0.5) @ R.T
+    sv = (sv - sv.min(0)) / np.ptp(sv, axis=0)
+    bv = (box.vertices - box.vertices.min(0)) / np.ptp(box.vertices, axis=0)
+    nearest = np.argmin(((bv[:, None] - sv[None]) ** 2).sum(-1), axis=1)
+    np.testing.assert_array_equal(got, src[1][nearest])
+    red = (got == [200, 30, 30]).all(1)
+    assert 0.1 < red.mean() < 0.9  # both halves show
+    e = box.edges_unique
+    assert (red[e[:, 0]] == red[e[:, 1]]).mean() > 0.85  # regions, not noise (random colours: ~0.5)
+
+    pool = distractor_pool(5, 8, object_colors=0.5, color_sources=[src])
+    coloured = [bool(np.isin(np.asarray(m.visual.vertex_colors)[:, 0], [200, 20]).all()) for m in pool]
+    assert coloured == [True] * 4 + [False] * 4
+    again = distractor_pool(5, 8, object_colors=0.5, color_sources=[src])
+    assert all(np.array_equal(a.visual.vertex_colors, b.visual.vertex_colors) for a, b in zip(pool, again, strict=True))
+    # at 0 the pool is the one made before the option existed (same random draws)
+    plain = distractor_pool(5, 8)
+    assert all(np.array_equal(a.vertices, b.vertices) for a, b in zip(plain, distractor_pool(5, 8, color_sources=[src]),
+                                                                      strict=True))
+    with pytest.raises(ValueError, match="object_colors > 0 needs color_sources"):
+        distractor_pool(5, 8, object_colors=0.5)
+    with pytest.raises(ValueError, match=r"distractor_object_colors must be a number in \[0, 1\], got 1.5"):
+        SynthConfig.from_options({"distractor_object_colors": 1.5})
+    assert "distractor_object_colors" not in SynthConfig().to_dict()
+
+
+def test_generated_occluders_wear_the_target_objects_colours(tmp_path, models_dir):
+    """End to end: with ``distractor_object_colors: 1`` the run's occluder pool wears only colours of
+    the shipped objects' vertices, and the setting is recorded for resuming."""
+    from kpd6d.objects import load_bop_models
+    from kpd6d.synth import generate as gen
+    from kpd6d.synth.distractors import color_source
+
+    opts = {**SMALL, "distractors": (2, 2), "distractor_object_colors": 1.0}
+    root = generate_dataset(tmp_path, models_dir, num_images=1, progress=False, **opts)
+    info = json.loads((root / "dataset_info.json").read_text())["splits"]["train"]["config"]
+    assert info["distractor_object_colors"] == 1.0
+    models = load_bop_models(root / "models")
+    cfg = SynthConfig.from_options(opts)
+    pool = gen._distractors(0, cfg, 0, gen._color_sources(models, cfg))
+    allowed = np.unique(np.concatenate([color_source(m.mesh)[1] for m in models]), axis=0)
+    assert len(allowed) > 1 and len(pool) == cfg.distractor_pool_size
+    for m in pool:
+        cols = np.unique(np.asarray(m.visual.vertex_colors)[:, :3].astype(float), axis=0)
+        assert (np.abs(cols[:, None] - allowed[None]).sum(-1).min(1) == 0).all()

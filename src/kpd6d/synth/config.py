@@ -26,7 +26,7 @@ _TABLETOP_FIELDS = ("layout", "table_elevation_range", "table_roll_range", "tabl
                     "table_room_prob", "table_shadow_prob")
 #: options added after datasets were made without them: left out of ``to_dict`` while at their
 #: defaults, so that those datasets resume with the settings they were made with
-_LATER_FIELDS = ("palette", "distractor_refresh", "table_shadow_prob")
+_LATER_FIELDS = ("palette", "distractor_refresh", "table_shadow_prob", "distractor_object_colors")
 
 
 def default_K(width: int, height: int) -> np.ndarray:
@@ -75,6 +75,8 @@ class SynthConfig:
     distractor_pool_size: int = 24
     distractor_refresh: int = 0  # images per distractor pool: a new pool every n images (0: one pool per worker)
     distractor_size: tuple[float, float] = (0.3, 1.0)  # apparent size relative to the occluded object's box
+    distractor_object_colors: float = 0.0  # fraction of the occluder pool coloured with a target object's colour
+    #                                        layout (transferred onto the primitive) instead of a palette pattern
     visib_fract_range: tuple[float, float] = (0.3, 1.0)  # every object's visible fraction must lie in it
     max_retries: int = 10  # scene re-samples to meet visib_fract_range (then the closest one is kept)
     # poses
@@ -166,6 +168,10 @@ class SynthConfig:
             raise ValueError(f"lighting must be 'random', 'indoor' or 'fixed', got {self.lighting!r}")
         check_palette(self.palette)
         self.distractor_refresh = to_int(self.distractor_refresh, "distractor_refresh")
+        f = self.distractor_object_colors
+        if isinstance(f, bool) or not isinstance(f, int | float) or not 0.0 <= f <= 1.0:
+            raise ValueError(f"distractor_object_colors must be a number in [0, 1], got {f!r}")
+        self.distractor_object_colors = float(f)
         if self.distractor_refresh < 0:
             raise ValueError(f"distractor_refresh must be >= 0 (0: one pool), got {self.distractor_refresh!r}")
         if self.rgb_format not in ("png", "jpg"):

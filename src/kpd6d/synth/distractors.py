@@ -2,6 +2,13 @@
 
 A fixed pool is made once per process from the generation seed (so renderers can cache the meshes);
 each image picks from it with its own random generator.
+
+With ``object_colors`` a fraction of the pool wears a target object's colours instead of a palette
+pattern: the object's colour layout is carried onto the primitive (each primitive vertex takes the
+colour of the nearest object vertex, both shapes scaled to the unit cube, the object turned at
+random first). Such clutter has exactly the objects' colours and not their shapes, so a detector
+cannot tell an object by colour alone (on real frames its false detections sit on clutter of the
+object's colour: session 21, docs/benchmarks.md).
 """
 
 from __future__ import annotations
@@ -10,7 +17,7 @@ import numpy as np
 
 from kpd6d.synth.palette import random_color
 
-__all__ = ["distractor_pool", "make_distractor"]
+__all__ = ["color_source", "distractor_pool", "make_distractor", "transfer_colors"]
 
 _SHAPES = ("box", "sphere", "cylinder", "cone", "capsule", "blob", "torus")
 
@@ -40,10 +47,39 @@ def _base_mesh(rng: np.random.Generator, kind: str):
     return m
 
 
-def make_distractor(rng: np.random.Generator, diameter: float, palette: str = "uniform"):
+def color_source(mesh) -> tuple[np.ndarray, np.ndarray]:
+    """``(vertices (N, 3) scaled into the unit cube, RGB colours (N, 3) float in [0, 255])`` of a
+    coloured mesh (vertex, face or texture colours), the input of :func:`transfer_colors`."""
+    v = np.asarray(mesh.vertices, dtype=np.float64)
+    visual = mesh.visual.to_color() if hasattr(mesh.visual, "to_color") else mesh.visual  # textures: sampled
+    rgb = np.asarray(visual.vertex_colors, dtype=np.float64)[:, :3]
+    if len(rgb) != len(v):
+        raise ValueError(f"mesh has {len(v)} vertices but {len(rgb)} vertex colours")
+    lo, hi = v.min(0), v.max(0)
+    return (v - lo) / np.maximum(hi - lo, 1e-9), rgb
+
+
+def transfer_colors(rng: np.random.Generator, vertices: np.ndarray, source: tuple[np.ndarray, np.ndarray]
+                    ) -> np.ndarray:
+    """Colours (N, 3) for ``vertices``: those of the nearest ``source`` vertex (:func:`color_source`),
+    after turning the source by a random rotation and scaling both point sets into the unit cube."""
+    from scipy.spatial import cKDTree
+    from scipy.spatial.transform import Rotation
+
+    sv, rgb = source
+    sv = (sv - 0.5) @ Rotation.random(random_state=rng).as_matrix().T
+    sv = (sv - sv.min(0)) / np.maximum(np.ptp(sv, axis=0), 1e-9)
+    v = np.asarray(vertices, dtype=np.float64)
+    v = (v - v.min(0)) / np.maximum(np.ptp(v, axis=0), 1e-9)
+    return rgb[cKDTree(sv).query(v)[1]]
+
+
+def make_distractor(rng: np.random.Generator, diameter: float, palette: str = "uniform",
+                    colors: tuple[np.ndarray, np.ndarray] | None = None):
     """A random primitive (box, sphere, cylinder, cone, capsule, torus, convex blob) of about
     ``diameter`` mm with a random vertex-colour texture (plain, stripes, checker, or noise) in
-    ``palette`` (:mod:`kpd6d.synth.palette`)."""
+    ``palette`` (:mod:`kpd6d.synth.palette`), or, given ``colors`` (:func:`color_source`), that
+    object's colour layout (:func:`transfer_colors`)."""
     import trimesh
 
     kind = _SHAPES[int(rng.integers(len(_SHAPES)))]
@@ -54,6 +90,9 @@ def make_distractor(rng: np.random.Generator, diameter: float, palette: str = "u
     ext = float(np.linalg.norm(np.ptp(np.asarray(m.vertices), axis=0)))
     m.apply_scale(diameter / max(ext, 1e-9))
     v = np.asarray(m.vertices) / diameter
+    if colors is not None:
+        _set_colors(m, transfer_colors(rng, v, colors))
+        return m
     c0, c1 = random_color(rng, palette), random_color(rng, palette)
     pattern = int(rng.integers(4))
     d = rng.normal(size=3)
@@ -67,15 +106,31 @@ def make_distractor(rng: np.random.Generator, diameter: float, palette: str = "u
         s = (np.floor(v * f).sum(1) % 2).astype(np.float64)
     else:  # noise
         s = rng.random(len(v))
-    col = c0 + s[:, None] * (c1 - c0)
-    rgba = np.concatenate([np.clip(col, 0, 255), np.full((len(v), 1), 255.0)], axis=1).astype(np.uint8)
-    m.visual = trimesh.visual.ColorVisuals(mesh=m, vertex_colors=rgba)
+    _set_colors(m, c0 + s[:, None] * (c1 - c0))
     return m
 
 
+def _set_colors(m, col: np.ndarray) -> None:
+    import trimesh
+
+    rgba = np.concatenate([np.clip(col, 0, 255), np.full((len(col), 1), 255.0)], axis=1).astype(np.uint8)
+    m.visual = trimesh.visual.ColorVisuals(mesh=m, vertex_colors=rgba)
+
+
 def distractor_pool(seed: int, size: int = 24, diameter_range: tuple[float, float] = (40.0, 200.0),
-                    palette: str = "uniform", block: int = 0) -> list:
+                    palette: str = "uniform", block: int = 0, object_colors: float = 0.0,
+                    color_sources: list | None = None) -> list:
     """``size`` distractor meshes, deterministic for ``(seed, block)``: ``block`` numbers the pools of
-    a run that refreshes its distractors (``distractor_refresh``); block 0 is the run's first pool."""
+    a run that refreshes its distractors (``distractor_refresh``); block 0 is the run's first pool.
+    ``object_colors``: the fraction of them (rounded) coloured like one of ``color_sources``
+    (:func:`color_source` of the target objects; required when the fraction is > 0)."""
     rng = np.random.default_rng([int(seed), 0xD15] + ([int(block)] if block else []))
-    return [make_distractor(rng, float(rng.uniform(*diameter_range)), palette) for _ in range(int(size))]
+    n_obj = round(float(object_colors) * int(size))
+    if n_obj and not color_sources:
+        raise ValueError("distractor_pool: object_colors > 0 needs color_sources (the target objects' colours)")
+    pool = []
+    for i in range(int(size)):
+        diameter = float(rng.uniform(*diameter_range))
+        src = color_sources[int(rng.integers(len(color_sources)))] if i < n_obj else None
+        pool.append(make_distractor(rng, diameter, palette, colors=src))
+    return pool

@@ -165,22 +165,33 @@ def _init_worker(spec: dict) -> None:
 
         handlers = [handler_for_model(m) for m in models]
     renderer = Renderer(cfg.width, cfg.height, cfg.camera_K(), antialias=cfg.antialias)
-    pool = _distractors(spec["seed"], cfg, 0)
+    sources = _color_sources(models, cfg)
+    pool = _distractors(spec["seed"], cfg, 0, sources)
     backgrounds = make_background_source(cfg.backgrounds_dir, cfg.palette)
     _STATE.clear()
     _STATE.update(
-        spec=spec, cfg=cfg, renderer=renderer, pool_block=0,
+        spec=spec, cfg=cfg, renderer=renderer, pool_block=0, color_sources=sources,
         composer=SceneComposer(renderer, models, cfg, backgrounds, pool, handlers),
     )
 
 
-def _distractors(seed: int, cfg: SynthConfig, block: int) -> list:
+def _color_sources(models: list, cfg: SynthConfig) -> list | None:
+    """The target objects' colour layouts, when occluders wear them (``distractor_object_colors``)."""
+    if not cfg.distractor_object_colors or cfg.distractors[1] <= 0:
+        return None
+    from kpd6d.synth.distractors import color_source
+
+    return [color_source(m.mesh) for m in models]
+
+
+def _distractors(seed: int, cfg: SynthConfig, block: int, color_sources: list | None = None) -> list:
     """Distractor pool number ``block`` of a run (block 0 only, unless ``distractor_refresh``)."""
     from kpd6d.synth.distractors import distractor_pool
 
     if cfg.distractors[1] <= 0:
         return []
-    return distractor_pool(seed, cfg.distractor_pool_size, palette=cfg.palette, block=block)
+    return distractor_pool(seed, cfg.distractor_pool_size, palette=cfg.palette, block=block,
+                           object_colors=cfg.distractor_object_colors, color_sources=color_sources)
 
 
 def _make_images(indices: list[int]) -> list[dict]:
@@ -245,7 +256,7 @@ def _make_image(index: int) -> dict:
     if cfg.distractor_refresh > 0:  # image ``index`` uses pool ``index // refresh``, whichever worker makes it
         block = index // cfg.distractor_refresh
         if block != _STATE["pool_block"]:
-            composer.set_distractors(_distractors(spec["seed"], cfg, block))
+            composer.set_distractors(_distractors(spec["seed"], cfg, block, _STATE["color_sources"]))
             _STATE["pool_block"] = block
     scene_id, im_id = divmod(index, cfg.scene_size)
     sd = Path(spec["split_dir"]) / f"{scene_id:06d}"

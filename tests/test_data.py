@@ -97,7 +97,7 @@ def test_targets_restrict_frames_and_instances(tmp_path):
         BopDataset(tmp_path, "test", targets=tmp_path / "bad.json")
 
 
-def test_round_trip_generated_dataset(tmp_path):
+def test_round_trip_generated_dataset(tmp_path, monkeypatch):
     from kpd6d.synth import generate_dataset
 
     models = write_models(tmp_path / "m")
@@ -110,6 +110,17 @@ def test_round_trip_generated_dataset(tmp_path):
     assert m.dtype == bool and m.sum() == f.instances[0].px_count_visib
     assert {mm.obj_id for mm in ds.load_models()} == {1, 2}
     assert ds.camera["width"] == 160
+    # meshes are read once per dataset (the evaluation's metrics and the refiner share them), and not pickled
+    import pickle
+
+    import kpd6d.objects as objects
+
+    calls = []
+    real = objects.load_bop_models
+    monkeypatch.setattr(objects, "load_bop_models", lambda *a, **k: calls.append(a) or real(*a, **k))
+    first = ds.load_models([2])
+    assert [m.obj_id for m in first] == [2] and ds.load_models([2])[0] is first[0] and len(calls) == 1
+    assert pickle.loads(pickle.dumps(ds))._models == {} and ds._models
 
 
 def test_bbox_from_mask():

@@ -108,6 +108,7 @@ class BopDataset(Sequence):
                  targets: str | os.PathLike | None = None, models_dir: str | os.PathLike | None = None) -> None:
         self.root = Path(root)
         self.split = split
+        self._models: dict = {}  # load_models' meshes, by object ids
         self.split_dir = self.root / split
         self.obj_ids = None if obj_ids is None else sorted(int(o) for o in obj_ids)
         self.models_dir = Path(models_dir) if models_dir is not None else self.root / "models"
@@ -220,11 +221,20 @@ class BopDataset(Sequence):
         return sorted({inst.obj_id for f in self.frames for inst in f.instances})
 
     def load_models(self, obj_ids: Sequence[int] | None = None):
-        """:class:`~kpd6d.objects.ObjectModel` list of ``models_dir`` (default: the dataset's obj_ids)."""
+        """:class:`~kpd6d.objects.ObjectModel` list of ``models_dir`` (default: the dataset's obj_ids).
+
+        Each mesh is read once per dataset object: the evaluation's metrics and the pose refiner
+        share the same models."""
         from kpd6d.objects import load_bop_models
 
         ids = obj_ids if obj_ids is not None else self.obj_ids
-        return load_bop_models(self.models_dir, ids)
+        key = None if ids is None else tuple(int(i) for i in ids)
+        if key not in self._models:
+            self._models[key] = load_bop_models(self.models_dir, ids)
+        return list(self._models[key])
+
+    def __getstate__(self) -> dict:  # data-loader workers get the annotations, not the meshes read so far
+        return {**self.__dict__, "_models": {}}
 
     @property
     def keypoints_path(self) -> Path:

@@ -168,12 +168,12 @@ class SynthConfig:
             raise ValueError(f"lighting must be 'random', 'indoor' or 'fixed', got {self.lighting!r}")
         check_palette(self.palette)
         self.distractor_refresh = to_int(self.distractor_refresh, "distractor_refresh")
+        if self.distractor_refresh < 0:
+            raise ValueError(f"distractor_refresh must be >= 0 (0: one pool), got {self.distractor_refresh!r}")
         f = self.distractor_object_colors
         if isinstance(f, bool) or not isinstance(f, int | float) or not 0.0 <= f <= 1.0:
             raise ValueError(f"distractor_object_colors must be a number in [0, 1], got {f!r}")
         self.distractor_object_colors = float(f)
-        if self.distractor_refresh < 0:
-            raise ValueError(f"distractor_refresh must be >= 0 (0: one pool), got {self.distractor_refresh!r}")
         if self.rgb_format not in ("png", "jpg"):
             raise ValueError(f"rgb_format must be 'png' or 'jpg', got {self.rgb_format!r}")
         if to_int(self.scene_size, "scene_size") < 1:

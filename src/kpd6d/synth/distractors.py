@@ -7,8 +7,8 @@ With ``object_colors`` a fraction of the pool wears a target object's colours in
 pattern: the object's colour layout is carried onto the primitive (each primitive vertex takes the
 colour of the nearest object vertex, both shapes scaled to the unit cube, the object turned at
 random first). Such clutter has exactly the objects' colours and not their shapes, so a detector
-cannot tell an object by colour alone (on real frames its false detections sit on clutter of the
-object's colour: session 21, docs/benchmarks.md).
+cannot tell an object by colour alone. Measured for LM-O (session 21, docs/benchmarks.md): a tie on
+synthetic validation, no gain on the real frames, so ``experiment=lmo`` does not use it.
 """
 
 from __future__ import annotations

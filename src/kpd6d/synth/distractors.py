@@ -55,8 +55,13 @@ def color_source(mesh) -> tuple[np.ndarray, np.ndarray]:
     rgb = np.asarray(visual.vertex_colors, dtype=np.float64)[:, :3]
     if len(rgb) != len(v):
         raise ValueError(f"mesh has {len(v)} vertices but {len(rgb)} vertex colours")
-    lo, hi = v.min(0), v.max(0)
-    return (v - lo) / np.maximum(hi - lo, 1e-9), rgb
+    return _unit_cube(v), rgb
+
+
+def _unit_cube(p: np.ndarray) -> np.ndarray:
+    """Points (N, 3) scaled per axis so that their bounding box is the unit cube."""
+    p = np.asarray(p, dtype=np.float64)
+    return (p - p.min(0)) / np.maximum(np.ptp(p, axis=0), 1e-9)
 
 
 def transfer_colors(rng: np.random.Generator, vertices: np.ndarray, source: tuple[np.ndarray, np.ndarray]
@@ -67,11 +72,8 @@ def transfer_colors(rng: np.random.Generator, vertices: np.ndarray, source: tupl
     from scipy.spatial.transform import Rotation
 
     sv, rgb = source
-    sv = (sv - 0.5) @ Rotation.random(random_state=rng).as_matrix().T
-    sv = (sv - sv.min(0)) / np.maximum(np.ptp(sv, axis=0), 1e-9)
-    v = np.asarray(vertices, dtype=np.float64)
-    v = (v - v.min(0)) / np.maximum(np.ptp(v, axis=0), 1e-9)
-    return rgb[cKDTree(sv).query(v)[1]]
+    sv = _unit_cube((sv - 0.5) @ Rotation.random(random_state=rng).as_matrix().T)
+    return rgb[cKDTree(sv).query(_unit_cube(vertices))[1]]
 
 
 def make_distractor(rng: np.random.Generator, diameter: float, palette: str = "uniform",

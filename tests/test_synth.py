@@ -766,3 +766,84 @@ def test_generated_occluders_wear_the_target_objects_colours(tmp_path, models_di
     for m in pool:
         cols = np.unique(np.asarray(m.visual.vertex_colors)[:, :3].astype(float), axis=0)
         assert (np.abs(cols[:, None] - allowed[None]).sum(-1).min(1) == 0).all()
+
+
+def test_printed_sheets_are_paper_with_sharp_ink():
+    """``kpd6d.synth.prints``: every kind of sheet is an RGB uint8 image of the asked size, deterministic
+    for a seed; marker, text and table sheets are mostly paper (bright) with dark ink and far sharper
+    than a smooth procedural texture; marker sheets hold square codes (their black borders give
+    closed dark squares); unknown kinds are named."""
+    import cv2
+
+    from kpd6d.synth.backgrounds import _gradient
+    from kpd6d.synth.prints import SHEET_KINDS, printed_sheet
+
+    def sharp_edges(img):  # the share of pixels at a sharp, high-contrast edge
+        g = cv2.cvtColor(np.ascontiguousarray(img), cv2.COLOR_RGB2GRAY).astype(np.float32)
+        return float((np.hypot(cv2.Sobel(g, cv2.CV_32F, 1, 0), cv2.Sobel(g, cv2.CV_32F, 0, 1)) > 150).mean())
+
+    smooth = np.clip(_gradient(np.random.default_rng(0), 200, 150), 0, 255).astype(np.uint8)
+    for kind in SHEET_KINDS:
+        a = printed_sheet(np.random.default_rng(4), 200, 150, "natural", kind)
+        assert a.shape == (150, 200, 3) and a.dtype == np.uint8
+        assert np.array_equal(a, printed_sheet(np.random.default_rng(4), 200, 150, "natural", kind))
+    for kind in ("markers", "text", "table"):
+        for seed in range(5):
+            img = printed_sheet(np.random.default_rng(seed), 240, 320, "natural", kind)
+            lum = img.mean(2)
+            assert np.median(lum) > 180, (kind, seed)  # paper
+            assert sharp_edges(img) > 0.005 > 100 * sharp_edges(smooth), (kind, seed)
+    # markers: each code has a closed black border, so dark square blobs with a solid outline
+    img = printed_sheet(np.random.default_rng(1), 300, 300, "natural", "markers")
+    dark = (img.max(2) < 60).astype(np.uint8)
+    contours, _ = cv2.findContours(dark, cv2.RETR_EXTERNAL, cv2.CHAIN_APPROX_SIMPLE)
+    squares = [c for c in contours if cv2.contourArea(c) > 50]
+    assert len(squares) >= 2
+    for c in squares:
+        _, _, w, h = cv2.boundingRect(c)
+        assert abs(w - h) <= 1 and cv2.contourArea(c) >= 0.9 * (w - 1) * (h - 1)  # square, outline closed
+    with pytest.raises(ValueError, match=r"unknown kind 'poster'; known: \['markers', 'text', 'table', 'picture'\]"):
+        printed_sheet(np.random.default_rng(0), 10, 10, kind="poster")
+
+
+def test_printed_matter_on_backgrounds_and_occluders():
+    """``printed_matter``: at 0 backgrounds and occluder pools are those made before the option (the same
+    random draws); at 1 sheets lie on every background (paper-bright, sharp regions appear); a
+    fraction of the pool are printed cards and boxes (textured, about their drawn diameter, centred);
+    the setting is checked and recorded only when set."""
+    from kpd6d.synth.backgrounds import ProceduralBackgrounds, procedural_background
+    from kpd6d.synth.distractors import distractor_pool
+    from kpd6d.synth.prints import paste_sheets
+
+    r0, r1 = np.random.default_rng(3), np.random.default_rng(3)
+    assert np.array_equal(procedural_background(r0, 96, 64, "natural"), procedural_background(r1, 96, 64, "natural", 0.0))
+    assert r0.random() == r1.random()  # nothing more drawn at 0
+    changed = 0
+    for seed in range(6):
+        plain = procedural_background(np.random.default_rng(seed), 160, 120, "natural")
+        printed = procedural_background(np.random.default_rng(seed), 160, 120, "natural", 1.0)
+        changed += not np.array_equal(plain, printed)
+    assert changed == 6
+    img = np.zeros((100, 120, 3), np.uint8)
+    assert np.array_equal(paste_sheets(np.random.default_rng(0), img.copy(), 0), img)
+    out = paste_sheets(np.random.default_rng(0), img.copy(), 3)
+    assert 0.01 < (out.max(2) > 0).mean() and (out.max(2) > 150).any()  # paper on the black image
+
+    pool = distractor_pool(7, 10, diameter_range=(40.0, 200.0), printed=0.5)
+    textured = [m.visual.kind == "texture" for m in pool]
+    assert textured == [True] * 5 + [False] * 5
+    for m in pool[:5]:
+        v = np.asarray(m.vertices)
+        diag = float(np.sqrt(((v[:, None] - v[None]) ** 2).sum(-1).max()))  # the box's diagonal
+        assert 40.0 - 1e-6 <= diag <= 200.0 + 1e-6
+        np.testing.assert_allclose((v.min(0) + v.max(0)) / 2, 0.0, atol=1e-9)
+        assert np.asarray(m.visual.material.baseColorTexture).ndim == 3
+    plain = distractor_pool(7, 10)
+    assert all(np.array_equal(a.vertices, b.vertices) for a, b in zip(plain, distractor_pool(7, 10, printed=0.0),
+                                                                      strict=True))
+    with pytest.raises(ValueError, match=r"printed matter: a probability in \[0, 1\], got 2"):
+        ProceduralBackgrounds(printed=2)
+    with pytest.raises(ValueError, match=r"printed_matter must be a number in \[0, 1\], got -0.1"):
+        SynthConfig.from_options({"printed_matter": -0.1})
+    assert "printed_matter" not in SynthConfig().to_dict()
+    assert SynthConfig.from_options({"printed_matter": 0.3}).to_dict()["printed_matter"] == 0.3

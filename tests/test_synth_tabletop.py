@@ -30,9 +30,10 @@ def models_dir(tmp_path_factory) -> Path:
 
 @pytest.fixture(scope="module")
 def dataset(tmp_path_factory, models_dir) -> Path:
+    """10 table-top images; half the occluder pool printed cards and boxes, sheets on half the tables."""
     root = tmp_path_factory.mktemp("tabletop")
     generate_dataset(root, models_dir, num_images=10, seed=5, progress=False, objects_per_image=(1, 3),
-                     distractors=(0, 2), depth=True, visib_fract_range=(0.0, 1.0), **TT)
+                     distractors=(0, 2), depth=True, visib_fract_range=(0.0, 1.0), printed_matter=0.5, **TT)
     return root
 
 

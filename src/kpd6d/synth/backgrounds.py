@@ -114,9 +114,11 @@ def _shapes(rng, img, count, max_size, palette="uniform"):
             cv2.line(img, (cx, cy), p2, color, int(rng.integers(1, 8)))
 
 
-def procedural_background(rng: np.random.Generator, width: int, height: int, palette: str = "uniform") -> np.ndarray:
+def procedural_background(rng: np.random.Generator, width: int, height: int, palette: str = "uniform",
+                          printed: float = 0.0) -> np.ndarray:
     """One procedural RGB uint8 background (height, width, 3), its colours from ``palette``
-    (:mod:`kpd6d.synth.palette`)."""
+    (:mod:`kpd6d.synth.palette`); with probability ``printed``, 1-5 printed sheets lie on it
+    (:func:`kpd6d.synth.prints.paste_sheets`; 0 draws nothing more from ``rng``)."""
     import cv2
 
     # the base is made at half resolution and upsampled (smooth patterns; 4x fewer pixels to compute)
@@ -132,6 +134,10 @@ def procedural_background(rng: np.random.Generator, width: int, height: int, pal
     scale = max(width, height)
     _shapes(rng, img, int(rng.integers(0, 12)), scale // 4, palette)  # large shapes
     _shapes(rng, img, int(rng.integers(0, 60)), max(4, scale // 25), palette)  # clutter
+    if printed > 0 and rng.random() < printed:
+        from kpd6d.synth.prints import paste_sheets
+
+        paste_sheets(rng, img, int(rng.integers(1, 6)), palette)
     if rng.random() < 0.5:
         img = cv2.GaussianBlur(img, (0, 0), rng.uniform(0.5, 2.0))
     sigma = rng.uniform(0, 8)
@@ -143,14 +149,17 @@ def procedural_background(rng: np.random.Generator, width: int, height: int, pal
 
 
 class ProceduralBackgrounds(BackgroundSource):
-    def __init__(self, palette: str = "uniform") -> None:
+    def __init__(self, palette: str = "uniform", printed: float = 0.0) -> None:
         self.palette = check_palette(palette)
+        if isinstance(printed, bool) or not isinstance(printed, int | float) or not 0.0 <= printed <= 1.0:
+            raise ValueError(f"printed matter: a probability in [0, 1], got {printed!r}")
+        self.printed = float(printed)
 
     def sample(self, rng, width, height):
-        return procedural_background(rng, width, height, self.palette)
+        return procedural_background(rng, width, height, self.palette, self.printed)
 
     def __repr__(self) -> str:
-        return f"ProceduralBackgrounds(palette={self.palette!r})"
+        return f"ProceduralBackgrounds(palette={self.palette!r}, printed={self.printed})"
 
 
 class FolderBackgrounds(BackgroundSource):
@@ -212,6 +221,8 @@ class FolderBackgrounds(BackgroundSource):
         return f"FolderBackgrounds({str(self.folder)!r}, files={len(self.files)})"
 
 
-def make_background_source(backgrounds_dir: str | os.PathLike | None, palette: str = "uniform") -> BackgroundSource:
-    """A :class:`FolderBackgrounds` for a folder, else :class:`ProceduralBackgrounds` in ``palette``."""
-    return FolderBackgrounds(backgrounds_dir) if backgrounds_dir else ProceduralBackgrounds(palette)
+def make_background_source(backgrounds_dir: str | os.PathLike | None, palette: str = "uniform",
+                           printed: float = 0.0) -> BackgroundSource:
+    """A :class:`FolderBackgrounds` for a folder, else :class:`ProceduralBackgrounds` in ``palette``
+    with printed sheets on a ``printed`` share of them (a folder's images are used as they are)."""
+    return FolderBackgrounds(backgrounds_dir) if backgrounds_dir else ProceduralBackgrounds(palette, printed)

@@ -26,7 +26,7 @@ _TABLETOP_FIELDS = ("layout", "table_elevation_range", "table_roll_range", "tabl
                     "table_room_prob", "table_shadow_prob")
 #: options added after datasets were made without them: left out of ``to_dict`` while at their
 #: defaults, so that those datasets resume with the settings they were made with
-_LATER_FIELDS = ("palette", "distractor_refresh", "table_shadow_prob", "distractor_object_colors")
+_LATER_FIELDS = ("palette", "distractor_refresh", "table_shadow_prob", "distractor_object_colors", "printed_matter")
 
 
 def default_K(width: int, height: int) -> np.ndarray:
@@ -102,6 +102,9 @@ class SynthConfig:
     specular_prob: float = 0.3
     backgrounds_dir: str | None = None  # folder of images; None: procedural backgrounds
     palette: str = "uniform"  # colours of the procedural content: "uniform" RGB or "natural" (kpd6d.synth.palette)
+    printed_matter: float = 0.0  # printed sheets (markers, text, tables, pictures) on this share of the procedural
+    #                              backgrounds / table tops / room surfaces, and this fraction of the occluder pool
+    #                              printed cards and boxes (kpd6d.synth.prints)
     feather_sigma: float = 0.7  # px; softens the pasted objects' edges (0: hard paste)
     antialias: bool = False  # 4x multisampled colour pass (smoother edges, ~2.5x slower colour on llvmpipe)
     photometric: dict = field(default_factory=dict)  # PhotometricConfig fields; {"prob": 0} turns off
@@ -170,10 +173,11 @@ class SynthConfig:
         self.distractor_refresh = to_int(self.distractor_refresh, "distractor_refresh")
         if self.distractor_refresh < 0:
             raise ValueError(f"distractor_refresh must be >= 0 (0: one pool), got {self.distractor_refresh!r}")
-        f = self.distractor_object_colors
-        if isinstance(f, bool) or not isinstance(f, int | float) or not 0.0 <= f <= 1.0:
-            raise ValueError(f"distractor_object_colors must be a number in [0, 1], got {f!r}")
-        self.distractor_object_colors = float(f)
+        for name in ("distractor_object_colors", "printed_matter"):
+            f = getattr(self, name)
+            if isinstance(f, bool) or not isinstance(f, int | float) or not 0.0 <= f <= 1.0:
+                raise ValueError(f"{name} must be a number in [0, 1], got {f!r}")
+            setattr(self, name, float(f))
         if self.rgb_format not in ("png", "jpg"):
             raise ValueError(f"rgb_format must be 'png' or 'jpg', got {self.rgb_format!r}")
         if to_int(self.scene_size, "scene_size") < 1:

@@ -17,7 +17,7 @@ import numpy as np
 
 from kpd6d.synth.palette import random_color
 
-__all__ = ["color_source", "distractor_pool", "make_distractor", "transfer_colors"]
+__all__ = ["color_source", "distractor_pool", "make_distractor", "make_printed_distractor", "transfer_colors"]
 
 _SHAPES = ("box", "sphere", "cylinder", "cone", "capsule", "blob", "torus")
 
@@ -112,6 +112,27 @@ def make_distractor(rng: np.random.Generator, diameter: float, palette: str = "u
     return m
 
 
+def make_printed_distractor(rng: np.random.Generator, diameter: float, palette: str = "uniform"):
+    """A printed card or box of about ``diameter`` mm (a packaging box, a book, a leaflet) with a
+    printed sheet (:func:`kpd6d.synth.prints.printed_sheet`: markers, text, a table or a picture) as
+    the texture of every face, centred on the origin in a random orientation."""
+    import trimesh
+
+    from kpd6d.synth.prints import printed_sheet
+    from kpd6d.synth.room import textured_box
+
+    ext = rng.uniform(0.3, 1.0, 3)
+    if rng.random() < 0.5:  # a card or leaflet
+        ext[int(rng.integers(3))] = rng.uniform(0.005, 0.03)
+    ext *= diameter / float(np.linalg.norm(ext))
+    side = int(rng.integers(96, 257))
+    m = textured_box(-ext / 2, ext / 2, printed_sheet(rng, side, side, palette), bottom=True)
+    m.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
+    v = np.asarray(m.vertices)
+    m.apply_translation(-(v.min(0) + v.max(0)) / 2)
+    return m
+
+
 def _set_colors(m, col: np.ndarray) -> None:
     import trimesh
 
@@ -121,18 +142,23 @@ def _set_colors(m, col: np.ndarray) -> None:
 
 def distractor_pool(seed: int, size: int = 24, diameter_range: tuple[float, float] = (40.0, 200.0),
                     palette: str = "uniform", block: int = 0, object_colors: float = 0.0,
-                    color_sources: list | None = None) -> list:
+                    color_sources: list | None = None, printed: float = 0.0) -> list:
     """``size`` distractor meshes, deterministic for ``(seed, block)``: ``block`` numbers the pools of
     a run that refreshes its distractors (``distractor_refresh``); block 0 is the run's first pool.
     ``object_colors``: the fraction of them (rounded) coloured like one of ``color_sources``
-    (:func:`color_source` of the target objects; required when the fraction is > 0)."""
+    (:func:`color_source` of the target objects; required when the fraction is > 0); ``printed``: the
+    fraction (rounded, of the rest) that are printed cards and boxes (:func:`make_printed_distractor`)."""
     rng = np.random.default_rng([int(seed), 0xD15] + ([int(block)] if block else []))
     n_obj = round(float(object_colors) * int(size))
     if n_obj and not color_sources:
         raise ValueError("distractor_pool: object_colors > 0 needs color_sources (the target objects' colours)")
+    n_print = min(round(float(printed) * int(size)), int(size) - n_obj)
     pool = []
     for i in range(int(size)):
         diameter = float(rng.uniform(*diameter_range))
+        if n_obj <= i < n_obj + n_print:
+            pool.append(make_printed_distractor(rng, diameter, palette))
+            continue
         src = color_sources[int(rng.integers(len(color_sources)))] if i < n_obj else None
         pool.append(make_distractor(rng, diameter, palette, colors=src))
     return pool

@@ -167,7 +167,7 @@ def _init_worker(spec: dict) -> None:
     renderer = Renderer(cfg.width, cfg.height, cfg.camera_K(), antialias=cfg.antialias)
     sources = _color_sources(models, cfg)
     pool = _distractors(spec["seed"], cfg, 0, sources)
-    backgrounds = make_background_source(cfg.backgrounds_dir, cfg.palette)
+    backgrounds = make_background_source(cfg.backgrounds_dir, cfg.palette, cfg.printed_matter)
     _STATE.clear()
     _STATE.update(
         spec=spec, cfg=cfg, renderer=renderer, pool_block=0, color_sources=sources,
@@ -191,7 +191,8 @@ def _distractors(seed: int, cfg: SynthConfig, block: int, color_sources: list | 
     if cfg.distractors[1] <= 0:
         return []
     return distractor_pool(seed, cfg.distractor_pool_size, palette=cfg.palette, block=block,
-                           object_colors=cfg.distractor_object_colors, color_sources=color_sources)
+                           object_colors=cfg.distractor_object_colors, color_sources=color_sources,
+                           printed=cfg.printed_matter)
 
 
 def _make_images(indices: list[int]) -> list[dict]:

@@ -847,3 +847,32 @@ def test_printed_matter_on_backgrounds_and_occluders():
         SynthConfig.from_options({"printed_matter": -0.1})
     assert "printed_matter" not in SynthConfig().to_dict()
     assert SynthConfig.from_options({"printed_matter": 0.3}).to_dict()["printed_matter"] == 0.3
+
+
+def test_surface_detail_changes_only_the_masked_pixels():
+    """``surface_detail``: pixels outside the mask are untouched, those inside gain fine detail (their
+    high-frequency energy rises on a smooth image) with their mean level kept; deterministic per seed;
+    an empty mask changes nothing; ``object_detail`` is checked and recorded only when set."""
+    import cv2
+
+    from kpd6d.synth.photometric import surface_detail
+
+    yy, xx = np.mgrid[0:80, 0:100]
+    img = np.stack([60 + xx, 90 + yy, 120 + 0 * xx], -1).astype(np.uint8)  # a smooth ramp
+    mask = (xx - 50) ** 2 + (yy - 40) ** 2 < 25 ** 2
+    out = surface_detail(img, mask, np.random.default_rng(2))
+    assert out.dtype == np.uint8 and out.shape == img.shape
+    assert np.array_equal(out[~mask], img[~mask])
+    assert np.array_equal(out, surface_detail(img, mask, np.random.default_rng(2)))
+    inner = cv2.erode(mask.astype(np.uint8), np.ones((5, 5), np.uint8)) > 0  # away from the ramp's filter margin
+
+    def hf(a):
+        g = a.mean(2).astype(np.float32)
+        return float(np.abs(cv2.Laplacian(g, cv2.CV_32F))[inner].mean())
+
+    assert hf(out) > 3 * hf(img) + 1.0
+    assert abs(float(out[mask].mean()) - float(img[mask].mean())) < 3.0
+    assert np.array_equal(surface_detail(img, np.zeros_like(mask), np.random.default_rng(0)), img)
+    with pytest.raises(ValueError, match=r"object_detail must be a number in \[0, 1\], got True"):
+        SynthConfig.from_options({"object_detail": True})
+    assert "object_detail" not in SynthConfig().to_dict()

@@ -546,3 +546,16 @@ def test_cast_shadows_only_darken_the_table(models_dir):
 
     with pytest.raises(ValueError, match="table_shadow_prob must lie in"):
         SynthConfig.from_options({"layout": "tabletop", "table_shadow_prob": 1.5})
+
+
+def test_object_detail_touches_only_the_objects(models_dir):
+    """``object_detail: 1``: the same scene as without it, but for the target objects' visible pixels (the
+    camera effects off, so nothing else draws from the stream after it)."""
+    opts = dict(objects_per_image=(2, 2), distractors=(1, 1), visib_fract_range=(0.0, 1.0), photometric={"prob": 0})
+    plain = _composer(models_dir, **opts).compose(np.random.default_rng(4))
+    detailed = _composer(models_dir, object_detail=1.0, **opts).compose(np.random.default_rng(4))
+    objects = np.logical_or.reduce([inst.mask_visib for inst in plain.instances])
+    assert objects.sum() > 100
+    assert np.array_equal(plain.rgb[~objects], detailed.rgb[~objects])
+    assert (plain.rgb[objects] != detailed.rgb[objects]).any(-1).mean() > 0.5
+    assert all(np.array_equal(a.mask_visib, b.mask_visib) for a, b in zip(plain.instances, detailed.instances, strict=True))

@@ -26,7 +26,8 @@ _TABLETOP_FIELDS = ("layout", "table_elevation_range", "table_roll_range", "tabl
                     "table_room_prob", "table_shadow_prob")
 #: options added after datasets were made without them: left out of ``to_dict`` while at their
 #: defaults, so that those datasets resume with the settings they were made with
-_LATER_FIELDS = ("palette", "distractor_refresh", "table_shadow_prob", "distractor_object_colors", "printed_matter")
+_LATER_FIELDS = ("palette", "distractor_refresh", "table_shadow_prob", "distractor_object_colors", "printed_matter",
+                 "object_detail")
 
 
 def default_K(width: int, height: int) -> np.ndarray:
@@ -106,6 +107,8 @@ class SynthConfig:
     #                              backgrounds / table tops / room surfaces, and this fraction of the occluder pool
     #                              printed cards and boxes (kpd6d.synth.prints)
     feather_sigma: float = 0.7  # px; softens the pasted objects' edges (0: hard paste)
+    object_detail: float = 0.0  # chance per image that the target objects' pixels get fine grain and sharpening
+    #                             (kpd6d.synth.photometric.surface_detail): renders are smoother than photographs
     antialias: bool = False  # 4x multisampled colour pass (smoother edges, ~2.5x slower colour on llvmpipe)
     photometric: dict = field(default_factory=dict)  # PhotometricConfig fields; {"prob": 0} turns off
     # keypoints
@@ -173,7 +176,7 @@ class SynthConfig:
         self.distractor_refresh = to_int(self.distractor_refresh, "distractor_refresh")
         if self.distractor_refresh < 0:
             raise ValueError(f"distractor_refresh must be >= 0 (0: one pool), got {self.distractor_refresh!r}")
-        for name in ("distractor_object_colors", "printed_matter"):
+        for name in ("distractor_object_colors", "printed_matter", "object_detail"):
             f = getattr(self, name)
             if isinstance(f, bool) or not isinstance(f, int | float) or not 0.0 <= f <= 1.0:
                 raise ValueError(f"{name} must be a number in [0, 1], got {f!r}")

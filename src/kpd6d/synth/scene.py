@@ -33,7 +33,7 @@ import numpy as np
 from kpd6d.data.bop_io import bbox_from_mask
 from kpd6d.geometry import bbox_from_points, project_points
 from kpd6d.synth.config import SynthConfig
-from kpd6d.synth.photometric import PhotometricConfig, apply_photometric
+from kpd6d.synth.photometric import PhotometricConfig, apply_photometric, surface_detail
 from kpd6d.synth.poses import ModelGeometry, _inside, projected_box, sample_object_pose
 from kpd6d.synth.room import make_room
 from kpd6d.synth.tabletop import (
@@ -558,6 +558,8 @@ class SceneComposer:
         if cfg.feather_sigma > 0:
             alpha = np.minimum(alpha, cv2.GaussianBlur(alpha, (0, 0), cfg.feather_sigma))
         rgb = cv2.blendLinear(np.ascontiguousarray(rendered), background, alpha, 1.0 - alpha)
+        if cfg.object_detail > 0 and instances and rng.random() < cfg.object_detail:
+            rgb = surface_detail(rgb, np.logical_or.reduce([inst.mask_visib for inst in instances]), rng)
         rgb = apply_photometric(rgb, rng, self.photometric)
         return SceneSample(rgb=rgb, depth=depth, K=self.K.copy(), instances=instances, attempts=attempts,
                            table=table_cam, distractor_items=d_items)

@@ -841,7 +841,7 @@ def test_printed_matter_on_backgrounds_and_occluders():
     plain = distractor_pool(7, 10)
     assert all(np.array_equal(a.vertices, b.vertices) for a, b in zip(plain, distractor_pool(7, 10, printed=0.0),
                                                                       strict=True))
-    with pytest.raises(ValueError, match=r"printed matter: a probability in \[0, 1\], got 2"):
+    with pytest.raises(ValueError, match=r"printed_matter must be a number in \[0, 1\], got 2"):
         ProceduralBackgrounds(printed=2)
     with pytest.raises(ValueError, match=r"printed_matter must be a number in \[0, 1\], got -0.1"):
         SynthConfig.from_options({"printed_matter": -0.1})

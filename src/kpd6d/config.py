@@ -13,7 +13,7 @@ from typing import Any
 from kpd6d.io import to_plain  # lives with the file writers; re-exported here
 
 __all__ = ["RENAMED_STAGE_KEYS", "ConfigError", "cfg_float", "cfg_int", "check_number_fields", "check_stage_config",
-           "config_dir", "renamed_overrides", "run_dir_of", "to_float", "to_int", "to_plain"]
+           "config_dir", "renamed_overrides", "run_dir_of", "to_float", "to_fraction", "to_int", "to_plain"]
 
 
 def config_dir() -> Path:
@@ -64,6 +64,13 @@ def to_float(value: Any, key: str) -> float:
     if isinstance(value, bool) or math.isnan(out):
         raise ConfigError(f"{key} must be a number, got {value!r}")
     return out
+
+
+def to_fraction(value: Any, key: str) -> float:
+    """``float(value)`` for a share or probability: a number in [0, 1], else :class:`ConfigError` naming ``key``."""
+    if isinstance(value, bool) or not isinstance(value, int | float) or not 0.0 <= value <= 1.0:
+        raise ConfigError(f"{key} must be a number in [0, 1], got {value!r}")
+    return float(value)
 
 
 def cfg_int(cfg: Any, key: str, default: Any = _MISSING) -> int:

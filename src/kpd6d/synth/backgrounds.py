@@ -12,6 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpd6d.config import to_fraction
 from kpd6d.synth.palette import check_palette, random_color
 
 __all__ = ["BackgroundSource", "FolderBackgrounds", "ProceduralBackgrounds", "make_background_source",
@@ -151,9 +152,7 @@ def procedural_background(rng: np.random.Generator, width: int, height: int, pal
 class ProceduralBackgrounds(BackgroundSource):
     def __init__(self, palette: str = "uniform", printed: float = 0.0) -> None:
         self.palette = check_palette(palette)
-        if isinstance(printed, bool) or not isinstance(printed, int | float) or not 0.0 <= printed <= 1.0:
-            raise ValueError(f"printed matter: a probability in [0, 1], got {printed!r}")
-        self.printed = float(printed)
+        self.printed = to_fraction(printed, "printed_matter")
 
     def sample(self, rng, width, height):
         return procedural_background(rng, width, height, self.palette, self.printed)

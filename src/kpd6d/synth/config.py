@@ -10,7 +10,7 @@ from typing import Any
 
 import numpy as np
 
-from kpd6d.config import to_int
+from kpd6d.config import to_fraction, to_int
 from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K
 from kpd6d.synth.palette import check_palette
 from kpd6d.synth.photometric import PhotometricConfig
@@ -177,10 +177,7 @@ class SynthConfig:
         if self.distractor_refresh < 0:
             raise ValueError(f"distractor_refresh must be >= 0 (0: one pool), got {self.distractor_refresh!r}")
         for name in ("distractor_object_colors", "printed_matter", "object_detail"):
-            f = getattr(self, name)
-            if isinstance(f, bool) or not isinstance(f, int | float) or not 0.0 <= f <= 1.0:
-                raise ValueError(f"{name} must be a number in [0, 1], got {f!r}")
-            setattr(self, name, float(f))
+            setattr(self, name, to_fraction(getattr(self, name), name))
         if self.rgb_format not in ("png", "jpg"):
             raise ValueError(f"rgb_format must be 'png' or 'jpg', got {self.rgb_format!r}")
         if to_int(self.scene_size, "scene_size") < 1:

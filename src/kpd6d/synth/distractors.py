@@ -82,13 +82,9 @@ def make_distractor(rng: np.random.Generator, diameter: float, palette: str = "u
     ``diameter`` mm with a random vertex-colour texture (plain, stripes, checker, or noise) in
     ``palette`` (:mod:`kpd6d.synth.palette`), or, given ``colors`` (:func:`color_source`), that
     object's colour layout (:func:`transfer_colors`)."""
-    import trimesh
 
     kind = _SHAPES[int(rng.integers(len(_SHAPES)))]
-    m = _base_mesh(rng, kind)
-    m.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
-    v = np.asarray(m.vertices)
-    m.apply_translation(-(v.min(0) + v.max(0)) / 2)
+    m = _turned_and_centred(rng, _base_mesh(rng, kind))
     ext = float(np.linalg.norm(np.ptp(np.asarray(m.vertices), axis=0)))
     m.apply_scale(diameter / max(ext, 1e-9))
     v = np.asarray(m.vertices) / diameter
@@ -116,7 +112,6 @@ def make_printed_distractor(rng: np.random.Generator, diameter: float, palette: 
     """A printed card or box of about ``diameter`` mm (a packaging box, a book, a leaflet) with a
     printed sheet (:func:`kpd6d.synth.prints.printed_sheet`: markers, text, a table or a picture) as
     the texture of every face, centred on the origin in a random orientation."""
-    import trimesh
 
     from kpd6d.synth.prints import printed_sheet
     from kpd6d.synth.room import textured_box
@@ -126,7 +121,13 @@ def make_printed_distractor(rng: np.random.Generator, diameter: float, palette: 
         ext[int(rng.integers(3))] = rng.uniform(0.005, 0.03)
     ext *= diameter / float(np.linalg.norm(ext))
     side = int(rng.integers(96, 257))
-    m = textured_box(-ext / 2, ext / 2, printed_sheet(rng, side, side, palette), bottom=True)
+    return _turned_and_centred(rng, textured_box(-ext / 2, ext / 2, printed_sheet(rng, side, side, palette), bottom=True))
+
+
+def _turned_and_centred(rng: np.random.Generator, m):
+    """``m`` turned by a random rotation, its bounding box then centred on the origin (in place)."""
+    import trimesh
+
     m.apply_transform(trimesh.transformations.random_rotation_matrix(rng.random(3)))
     v = np.asarray(m.vertices)
     m.apply_translation(-(v.min(0) + v.max(0)) / 2)

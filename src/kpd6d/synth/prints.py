@@ -140,8 +140,16 @@ def paste_sheets(rng: np.random.Generator, img: np.ndarray, count: int, palette:
         cx, cy = rng.uniform(0, W), rng.uniform(0, H)
         M = cv2.getRotationMatrix2D((sw / 2, sh / 2), angle, 1.0)
         M[:, 2] += (cx - sw / 2, cy - sh / 2)
-        warped = cv2.warpAffine(sheet, M, (W, H), flags=cv2.INTER_LINEAR)
-        alpha = cv2.warpAffine(np.ones((sh, sw), np.float32), M, (W, H), flags=cv2.INTER_LINEAR)[..., None]
-        out = img.astype(np.float32) * (1 - alpha) + warped * alpha
-        img[...] = np.clip(out + 0.5, 0, 255).astype(np.uint8)
+        # only the window the turned sheet covers (a pixel of margin for the interpolation) is touched
+        corners = np.array([[0, 0, 1], [sw, 0, 1], [0, sh, 1], [sw, sh, 1]], np.float64) @ M.T
+        x0, y0 = np.maximum(np.floor(corners.min(0)).astype(int) - 1, 0)
+        x1, y1 = np.minimum(np.ceil(corners.max(0)).astype(int) + 2, (W, H))
+        if x1 <= x0 or y1 <= y0:
+            continue
+        Mw = M - [[0, 0, x0], [0, 0, y0]]
+        size = (int(x1 - x0), int(y1 - y0))
+        warped = cv2.warpAffine(sheet, Mw, size, flags=cv2.INTER_LINEAR)
+        alpha = cv2.warpAffine(np.ones((sh, sw), np.float32), Mw, size, flags=cv2.INTER_LINEAR)[..., None]
+        win = img[y0:y1, x0:x1]
+        win[...] = np.clip(win.astype(np.float32) * (1 - alpha) + warped * alpha + 0.5, 0, 255).astype(np.uint8)
     return img

@@ -1,6 +1,8 @@
 """The KPD checkpoint schema (kpd6d.kpd.checkpoint): the codec record, checkpoints from before the
 codec, and the validation pose metrics of kpd6d.evaluation.kpd_metrics."""
 
+import json
+
 import numpy as np
 import pytest
 import torch
@@ -128,3 +130,43 @@ def test_pose_metrics_symmetric_2d_error_takes_the_symmetry_into_account():
     sym = pose_metrics(poses, R, t, K, pts, [True], [100.0], [S])
     assert plain["proj2d_acc_5px"] == 0.0 and sym["proj2d_acc_5px"] == 1.0
     assert plain["add_acc_0.1d"] == sym["add_acc_0.1d"] == 1.0  # ADD-S accepts it either way
+
+
+def test_manifest_member_list_averages_networks(tmp_path):
+    """A manifest member given as a list of checkpoints: each keypoint is the coordinate-wise median of
+    the networks' estimates (the mean of two), its confidence their mean; each checkpoint is loaded once;
+    networks with other keypoints are refused, naming the manifest and the object."""
+    from kpd6d.kpd.ensemble import KPDAverage, load_kpd, read_manifest, write_manifest
+
+    paths = []
+    for seed in range(3):
+        torch.manual_seed(seed)
+        paths.append(_save(_module(), tmp_path / f"net{seed}.ckpt"))
+    man = write_manifest(tmp_path / "avg.json", {3: paths, 7: paths[:2]})
+    assert json.loads(man.read_text())["members"] == {"3": ["net0.ckpt", "net1.ckpt", "net2.ckpt"],
+                                                      "7": ["net0.ckpt", "net1.ckpt"]}
+    assert read_manifest(man)[3] == [p.resolve() for p in paths]
+    ens = load_kpd(man)
+    three, two = ens.member(3), ens.member(7)
+    assert isinstance(three, KPDAverage) and isinstance(two, KPDAverage)
+    assert three.nets[0] is two.nets[0] and three.nets[1] is two.nets[1]  # loaded once
+    single = [_predict(KPDModule.load_checkpoint(p)) for p in paths]
+    kp, conf = _predict(ens)
+    kps = np.stack([s[0].numpy() for s in single])
+    confs = np.stack([s[1].numpy() for s in single])
+    assert not np.allclose(kps[0], kps[1], atol=0.5)  # the networks disagree: the combination matters
+    np.testing.assert_allclose(kp[0].numpy(), np.median(kps[:, 0], axis=0), atol=1e-4)  # object 3: median of 3
+    np.testing.assert_allclose(kp[1].numpy(), kps[:2, 1].mean(0), atol=1e-4)  # object 7: mean of 2
+    np.testing.assert_allclose(conf[0].numpy(), confs[:, 0].mean(0), atol=1e-5)
+    np.testing.assert_allclose(conf[1].numpy(), confs[:2, 1].mean(0), atol=1e-5)
+    assert ens.keypoints_3d[3].shape == (6, 3)
+
+    rng = np.random.default_rng(5)
+    other = _save(_module(keypoints_3d=[rng.uniform(-40, 40, (6, 3)) for _ in range(2)]), tmp_path / "other.ckpt")
+    write_manifest(man, {3: [paths[0], other]})
+    with pytest.raises(ValueError, match=r"avg.json', object 3: KPDAverage: network 1 does not have network 0's "
+                                         r"objects and keypoints"):
+        load_kpd(man)
+    man.write_text(json.dumps({"format": "kpd6d-kpd-networks", "version": 1, "members": {"3": []}}))
+    with pytest.raises(ValueError, match=r"object 3's member must be a checkpoint path or a non-empty list"):
+        read_manifest(man)

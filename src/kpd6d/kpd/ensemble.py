@@ -10,6 +10,10 @@ On disk an ensemble is a manifest (``networks.json``, written by :func:`write_ma
     {"format": "kpd6d-kpd-networks", "version": 1,
      "members": {"1": "obj_000001/checkpoints/best.ckpt", ...}}   # paths relative to the manifest
 
+A member may also be a list of checkpoints trained for the same keypoints: :class:`KPDAverage` runs
+them all on each box and takes each keypoint's coordinate-wise median (the mean of two) and its mean
+confidence, as test-time crops are combined. A checkpoint named under several objects is loaded once.
+
 :func:`load_kpd` loads either a KPD checkpoint or such a manifest: every place that takes
 ``kpd_ckpt`` takes both.
 """
@@ -25,7 +29,7 @@ from typing import Any
 import numpy as np
 import torch
 
-__all__ = ["MANIFEST_FORMAT", "KPDEnsemble", "is_manifest", "load_kpd", "read_manifest", "write_manifest"]
+__all__ = ["MANIFEST_FORMAT", "KPDAverage", "KPDEnsemble", "is_manifest", "load_kpd", "read_manifest", "write_manifest"]
 
 MANIFEST_FORMAT = "kpd6d-kpd-networks"
 
@@ -88,23 +92,72 @@ class KPDEnsemble(torch.nn.Module):
         return kp, conf
 
 
+class KPDAverage(torch.nn.Module):
+    """Several KPD networks for the same objects and keypoints behind the one-network interface: each
+    keypoint is the coordinate-wise median of the networks' estimates, its confidence their mean."""
+
+    def __init__(self, members) -> None:
+        super().__init__()
+        members = list(members)
+        if not members:
+            raise ValueError("KPDAverage needs at least one network")
+        first = members[0].keypoints_3d
+        for i, m in enumerate(members[1:], 1):
+            kp = m.keypoints_3d
+            if sorted(int(o) for o in kp) != sorted(int(o) for o in first) or any(
+                    np.asarray(kp[o]).shape != np.asarray(first[o]).shape
+                    or not np.allclose(np.asarray(kp[o], dtype=np.float64), np.asarray(first[o], dtype=np.float64),
+                                       atol=1e-6) for o in first):
+                raise ValueError(f"KPDAverage: network {i} does not have network 0's objects and keypoints "
+                                 f"(objects {sorted(int(o) for o in kp)} vs {sorted(int(o) for o in first)}); "
+                                 "only networks trained for the same keypoints can be averaged")
+        self.nets = torch.nn.ModuleList(members)
+        self.num_keypoints = members[0].num_keypoints
+
+    @property
+    def device(self) -> torch.device:
+        return self.nets[0].device
+
+    @property
+    def keypoints_3d(self) -> dict[int, np.ndarray]:
+        return self.nets[0].keypoints_3d
+
+    def surface_points(self, obj_id: int) -> np.ndarray:
+        return self.nets[0].surface_points(int(obj_id))
+
+    @torch.no_grad()
+    def predict_keypoints(self, images: torch.Tensor, boxes, image_index, obj_ids) -> tuple[torch.Tensor, torch.Tensor]:
+        """As :meth:`kpd6d.kpd.module.KPDModule.predict_keypoints`, combined over the networks."""
+        outs = [m.predict_keypoints(images, boxes, image_index, obj_ids) for m in self.nets]
+        kp = torch.stack([torch.as_tensor(p) for p, _ in outs])
+        conf = torch.stack([torch.as_tensor(c) for _, c in outs])
+        return torch.quantile(kp.double(), 0.5, dim=0).to(kp.dtype), conf.mean(dim=0)
+
+
 def is_manifest(path: str | os.PathLike) -> bool:
     """True when ``path`` names a KPD networks manifest (a ``.json`` file), not a checkpoint."""
     return str(path).lower().endswith(".json")
 
 
-def write_manifest(path: str | os.PathLike, members: Mapping[int, str | os.PathLike]) -> Path:
-    """Write ``networks.json`` atomically; member paths are stored relative to its folder."""
+def write_manifest(path: str | os.PathLike, members: Mapping[int, Any]) -> Path:
+    """Write ``networks.json`` atomically; ``members``: obj_id -> a checkpoint path, or a list of them
+    (averaged, :class:`KPDAverage`); paths are stored relative to the manifest's folder."""
     from kpd6d.io import atomic_write_text
 
     path = Path(path)
-    rel = {str(int(o)): os.path.relpath(Path(p), path.parent) for o, p in sorted(members.items())}
+
+    def rel_path(p):
+        return os.path.relpath(Path(p), path.parent)
+
+    rel = {str(int(o)): rel_path(p) if isinstance(p, str | os.PathLike) else [rel_path(q) for q in p]
+           for o, p in sorted(members.items())}
     atomic_write_text(path, json.dumps({"format": MANIFEST_FORMAT, "version": 1, "members": rel}, indent=1))
     return path
 
 
-def read_manifest(path: str | os.PathLike) -> dict[int, Path]:
-    """obj_id -> checkpoint path of a manifest; errors name the file and what is wrong."""
+def read_manifest(path: str | os.PathLike) -> dict[int, Path | list[Path]]:
+    """obj_id -> checkpoint path (or list of paths: networks averaged) of a manifest; errors name the
+    file and what is wrong."""
     p = Path(path)
     if not p.is_file():
         raise FileNotFoundError(f"KPD networks manifest {str(p)!r} does not exist")
@@ -122,7 +175,16 @@ def read_manifest(path: str | os.PathLike) -> dict[int, Path]:
             oid = int(key)
         except ValueError:
             raise ValueError(f"KPD networks manifest {str(p)!r}: member key {key!r} is not an object id") from None
-        out[oid] = (p.parent / str(rel)).resolve()
+        if isinstance(rel, list):
+            if not rel or not all(isinstance(r, str) for r in rel):
+                raise ValueError(f"KPD networks manifest {str(p)!r}: object {oid}'s member must be a checkpoint "
+                                 f"path or a non-empty list of them, got {rel!r}")
+            out[oid] = [(p.parent / r).resolve() for r in rel]
+        elif isinstance(rel, str):
+            out[oid] = (p.parent / rel).resolve()
+        else:
+            raise ValueError(f"KPD networks manifest {str(p)!r}: object {oid}'s member must be a checkpoint path "
+                             f"or a list of them, got {rel!r}")
     return out
 
 
@@ -133,10 +195,19 @@ def load_kpd(path: str | os.PathLike, map_location: Any = "cpu"):
 
     if not is_manifest(path):
         return KPDModule.load_checkpoint(path, map_location=map_location)
-    members = {}
-    for o, ck in read_manifest(path).items():
-        try:
-            members[o] = KPDModule.load_checkpoint(ck, map_location=map_location)
-        except (FileNotFoundError, ValueError) as exc:
-            raise type(exc)(f"KPD networks manifest {str(path)!r}, object {o}: {exc}") from exc
+    members, loaded, averages = {}, {}, {}
+    for o, cks in read_manifest(path).items():
+        cks = tuple(cks) if isinstance(cks, list) else (cks,)
+        for ck in cks:
+            if ck not in loaded:
+                try:
+                    loaded[ck] = KPDModule.load_checkpoint(ck, map_location=map_location)
+                except (FileNotFoundError, ValueError) as exc:
+                    raise type(exc)(f"KPD networks manifest {str(path)!r}, object {o}: {exc}") from exc
+        if len(cks) > 1 and cks not in averages:
+            try:
+                averages[cks] = KPDAverage([loaded[ck] for ck in cks])
+            except ValueError as exc:
+                raise ValueError(f"KPD networks manifest {str(path)!r}, object {o}: {exc}") from None
+        members[o] = averages[cks] if len(cks) > 1 else loaded[cks[0]]
     return KPDEnsemble(members).eval()

@@ -471,8 +471,35 @@ def test_upright_objects_stand_as_modelled_and_indoor_lighting(models_dir):
         assert np.array_equal(again.rgb, s.rgb)
     with pytest.raises(ValueError, match="table_upright_prob must lie in"):
         SynthConfig.from_options({"table_upright_prob": 1.5})
-    with pytest.raises(ValueError, match="lighting must be 'random', 'indoor' or 'fixed'"):
+    with pytest.raises(ValueError, match="lighting must be 'random', 'indoor', 'mixed' or 'fixed', got 'sunny'"):
         SynthConfig.from_options({"lighting": "sunny"})
+
+
+def test_mixed_lighting_lights_each_image_one_way_or_the_other(models_dir, monkeypatch):
+    """lighting=mixed: each image is lit by Lighting.random or Lighting.random_indoor (both occur, about half
+    and half, one per image), and an image stays deterministic for its seed."""
+    from kpd6d.render import Lighting
+
+    calls = []
+    for name in ("random", "random_indoor"):
+        orig = getattr(Lighting, name).__func__
+
+        def spy(cls, rng, *a, _orig=orig, _name=name, **kw):
+            calls.append(_name)
+            return _orig(cls, rng, *a, **kw)
+
+        monkeypatch.setattr(Lighting, name, classmethod(spy))
+    comp = _composer(models_dir, objects_per_image=(1, 1), distractors=(0, 0), visib_fract_range=(0.0, 1.0),
+                     lighting="mixed")
+    n = 16
+    for i in range(n):
+        comp.compose(np.random.default_rng([7, i]))
+    assert len(calls) == n and 4 <= calls.count("random") <= n - 4
+    first = calls[:]
+    calls.clear()
+    a = comp.compose(np.random.default_rng([7, 3]))
+    b = comp.compose(np.random.default_rng([7, 3]))
+    assert calls == [first[3]] * 2 and np.array_equal(a.rgb, b.rgb)
 
 
 def test_indoor_lighting_is_dimmer_on_average_and_tinted():

@@ -99,7 +99,7 @@ class SynthConfig:
     table_shadow_prob: float = 0.0  # chance that the objects and occluders cast shadows of the main light onto the table
     table_room_prob: float = 0.0  # chance that the table stands in a procedural room (floor, walls, posters, screens, furniture)
     # appearance
-    lighting: str = "random"  # "random" (Lighting.random per image), "indoor" (Lighting.random_indoor) or "fixed"
+    lighting: str = "random"  # "random" (Lighting.random per image), "indoor" (Lighting.random_indoor), "mixed" (either, half and half) or "fixed"
     specular_prob: float = 0.3
     backgrounds_dir: str | None = None  # folder of images; None: procedural backgrounds
     palette: str = "uniform"  # colours of the procedural content: "uniform" RGB or "natural" (kpd6d.synth.palette)
@@ -170,8 +170,8 @@ class SynthConfig:
             setattr(self, name, _pair(name, getattr(self, name)))
         self.view_ranges()  # validates the angle / distance ranges
         self._validate_layout()
-        if self.lighting not in ("random", "indoor", "fixed"):
-            raise ValueError(f"lighting must be 'random', 'indoor' or 'fixed', got {self.lighting!r}")
+        if self.lighting not in ("random", "indoor", "mixed", "fixed"):
+            raise ValueError(f"lighting must be 'random', 'indoor', 'mixed' or 'fixed', got {self.lighting!r}")
         check_palette(self.palette)
         self.distractor_refresh = to_int(self.distractor_refresh, "distractor_refresh")
         if self.distractor_refresh < 0:

@@ -522,9 +522,12 @@ class SceneComposer:
 
         cfg = self.cfg
         chosen = self._choose_objects(rng)
-        if cfg.lighting == "random":
+        style = cfg.lighting
+        if style == "mixed":  # each image lit one way or the other, half and half
+            style = "random" if rng.random() < 0.5 else "indoor"
+        if style == "random":
             lighting = Lighting.random(rng, specular_prob=cfg.specular_prob)
-        elif cfg.lighting == "indoor":
+        elif style == "indoor":
             lighting = Lighting.random_indoor(rng, specular_prob=cfg.specular_prob)
         else:
             lighting = Lighting()

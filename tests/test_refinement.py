@@ -70,6 +70,25 @@ def test_refinement_keeps_the_true_pose(scene_renderer, refiner):
     assert np.linalg.norm(out.t - t) < 3.0 and rotation_error_deg(out.R, R) < 1.5
 
 
+def test_edge_offset_sets_where_the_silhouette_edge_is_taken(scene_renderer):
+    """From the true pose on an aliased render: the default half viewport pixel keeps the depth within
+    0.5 %; taking the edge at the contour pixels' centres (0) pulls the object nearer (its contour
+    looks a little too small), a whole pixel out (1) pushes it away; a value outside [0, 1] is refused."""
+    model = procedural_objects(obj_ids=[1])[0]
+    image, R, t = _scene(scene_renderer, model, seed=3)
+    z = {}
+    for e in (0.0, 0.5, 1.0):
+        ref = RegionRefiner(RegionRefineConfig(edge_offset=e))
+        out = ref.refine(image, model, R, t, LINEMOD_K)
+        ref.close()
+        assert out.ok
+        z[e] = out.t[2] / t[2]
+    assert abs(z[0.5] - 1) < 0.005 and z[0.0] < z[0.5] < z[1.0], z
+    assert z[1.0] - z[0.0] > 0.005, z
+    with pytest.raises(ValueError, match=r"edge_offset must lie in \[0, 1\]"):
+        RegionRefineConfig(edge_offset=1.5)
+
+
 def test_no_evidence_keeps_the_input_pose(refiner):
     model = procedural_objects(obj_ids=[1])[0]
     R, t = pose_from_view(0.7, 0.5, 650.0, 0.3)

@@ -67,6 +67,7 @@ class RegionRefineConfig:
     viewport: int = 192
     ring: float = 0.15  # background ring width, as a fraction of the projected diameter
     occlusion: bool = False  # the image's other estimated objects mask the line samples they cover
+    edge_offset: float = 0.5  # viewport px from a contour pixel's centre out to where the silhouette's edge is taken
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "scales", tuple(float(v) for v in self.scales))
@@ -80,6 +81,8 @@ class RegionRefineConfig:
         for name in ("slope", "min_step", "prior_rotation", "prior_translation", "ring"):
             if not (getattr(self, name) > 0):
                 raise ValueError(f"region refinement: {name} must be > 0, got {getattr(self, name)}")
+        if not (0 <= self.edge_offset <= 1):
+            raise ValueError(f"region refinement: edge_offset must lie in [0, 1] (viewport px), got {self.edge_offset}")
 
 
 @dataclass
@@ -234,7 +237,7 @@ class RegionRefiner:
         if others:
             res = self.renderer.render([(model, R, t), *others], K=Kv, depth_only=True)
             occ = np.where(res.masks_visib[0], 0.0, res.depth).astype(np.float32)  # the front-most other object
-        return X, nv, 0.5 / a, (mask, A, a), occ
+        return X, nv, self.config.edge_offset / a, (mask, A, a), occ
 
     def _posterior(self, image, mask, A, diameter_px, hidden=None):
         """Per-pixel foreground posterior on the image (float32, H x W), from colour histograms of the

@@ -170,3 +170,6 @@ def test_manifest_member_list_averages_networks(tmp_path):
     man.write_text(json.dumps({"format": "kpd6d-kpd-networks", "version": 1, "members": {"3": []}}))
     with pytest.raises(ValueError, match=r"object 3's member must be a checkpoint path or a non-empty list"):
         read_manifest(man)
+    man.write_text(json.dumps({"format": "kpd6d-kpd-networks", "version": 1, "members": {"3": 5}}))
+    with pytest.raises(ValueError, match=r"object 3's member must be a checkpoint path .*got 5"):
+        read_manifest(man)

@@ -175,16 +175,12 @@ def read_manifest(path: str | os.PathLike) -> dict[int, Path | list[Path]]:
             oid = int(key)
         except ValueError:
             raise ValueError(f"KPD networks manifest {str(p)!r}: member key {key!r} is not an object id") from None
-        if isinstance(rel, list):
-            if not rel or not all(isinstance(r, str) for r in rel):
-                raise ValueError(f"KPD networks manifest {str(p)!r}: object {oid}'s member must be a checkpoint "
-                                 f"path or a non-empty list of them, got {rel!r}")
-            out[oid] = [(p.parent / r).resolve() for r in rel]
-        elif isinstance(rel, str):
-            out[oid] = (p.parent / rel).resolve()
-        else:
+        paths = rel if isinstance(rel, list) else [rel]
+        if not paths or not all(isinstance(r, str) for r in paths):
             raise ValueError(f"KPD networks manifest {str(p)!r}: object {oid}'s member must be a checkpoint path "
-                             f"or a list of them, got {rel!r}")
+                             f"or a non-empty list of them, got {rel!r}")
+        resolved = [(p.parent / r).resolve() for r in paths]
+        out[oid] = resolved if isinstance(rel, list) else resolved[0]
     return out
 
 

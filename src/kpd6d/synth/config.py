@@ -16,7 +16,7 @@ from kpd6d.synth.palette import check_palette
 from kpd6d.synth.photometric import PhotometricConfig
 from kpd6d.synth.poses import ViewRanges
 
-__all__ = ["LAYOUTS", "SynthConfig", "default_K"]
+__all__ = ["LAYOUTS", "LIGHTING_STYLES", "SynthConfig", "default_K"]
 
 LAYOUTS = ("free", "tabletop")
 #: options of the table-top layout; with ``layout: free`` they are left out of ``to_dict`` while at
@@ -24,6 +24,8 @@ LAYOUTS = ("free", "tabletop")
 _TABLETOP_FIELDS = ("layout", "table_elevation_range", "table_roll_range", "table_size_range",
                     "table_cluster_radius", "table_distractor_rest_prob", "table_upright_prob",
                     "table_room_prob", "table_shadow_prob")
+#: ``lighting``: per image Lighting.random, Lighting.random_indoor, one of the two at random, or a constant light
+LIGHTING_STYLES = ("random", "indoor", "mixed", "fixed")
 #: options added after datasets were made without them: left out of ``to_dict`` while at their
 #: defaults, so that those datasets resume with the settings they were made with
 _LATER_FIELDS = ("palette", "distractor_refresh", "table_shadow_prob", "distractor_object_colors", "printed_matter",
@@ -170,8 +172,9 @@ class SynthConfig:
             setattr(self, name, _pair(name, getattr(self, name)))
         self.view_ranges()  # validates the angle / distance ranges
         self._validate_layout()
-        if self.lighting not in ("random", "indoor", "mixed", "fixed"):
-            raise ValueError(f"lighting must be 'random', 'indoor', 'mixed' or 'fixed', got {self.lighting!r}")
+        if self.lighting not in LIGHTING_STYLES:
+            names = ", ".join(repr(x) for x in LIGHTING_STYLES[:-1])
+            raise ValueError(f"lighting must be {names} or {LIGHTING_STYLES[-1]!r}, got {self.lighting!r}")
         check_palette(self.palette)
         self.distractor_refresh = to_int(self.distractor_refresh, "distractor_refresh")
         if self.distractor_refresh < 0:

@@ -82,7 +82,6 @@ def make_distractor(rng: np.random.Generator, diameter: float, palette: str = "u
     ``diameter`` mm with a random vertex-colour texture (plain, stripes, checker, or noise) in
     ``palette`` (:mod:`kpd6d.synth.palette`), or, given ``colors`` (:func:`color_source`), that
     object's colour layout (:func:`transfer_colors`)."""
-
     kind = _SHAPES[int(rng.integers(len(_SHAPES)))]
     m = _turned_and_centred(rng, _base_mesh(rng, kind))
     ext = float(np.linalg.norm(np.ptp(np.asarray(m.vertices), axis=0)))

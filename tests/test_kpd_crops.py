@@ -155,3 +155,43 @@ def test_image_cache_gives_identical_items_within_its_budget(lmo_dir, lmo_model_
                 torch.testing.assert_close(a[key], b[key])
     assert len(cached._cache) == 2 and cached._cache_bytes <= 2.5 * one_image_mb * 2**20
     assert not plain._cache
+
+
+def test_negative_crops_avoid_their_object_and_have_empty_targets(lmo_dir, lmo_model_by_id):
+    """negative_fraction: the negative items' crops touch no visible box of their object (read from
+    scene_gt_info.json here), their targets and visibility are all zero, the positives are the plain
+    dataset's items; a fraction outside [0, 1) is refused."""
+    models = [lmo_model_by_id[1], lmo_model_by_id[5]]
+    kps = {m.obj_id: m.bbox_corners for m in models}
+    common = dict(split="test", obj_ids=[1, 5], keypoints=kps, models=models, input_size=64, min_visib_fract=0.3)
+    plain = KPDCropDataset(lmo_dir, **common)
+    mixed = KPDCropDataset(lmo_dir, negative_fraction=0.5, **common)
+    scene = plain.ds.frames[0].scene_dir
+    gt = json.loads((scene / "scene_gt.json").read_text())
+    info = json.loads((scene / "scene_gt_info.json").read_text())
+    torch.manual_seed(0)
+    n_neg = 0
+    for i in range(len(mixed)):
+        a = mixed[i]
+        frame = mixed.ds.frames[mixed.items[i][0]]
+        if not a["negative"]:
+            b = plain[i]
+            for key in ("image", "keypoints", "visibility", "heatmaps", "box"):
+                torch.testing.assert_close(a[key], b[key])
+            continue
+        n_neg += 1
+        assert a["heatmaps"].abs().max() == 0 and a["visibility"].sum() == 0
+        # the crop square in image px, from the item's affine (crop px -> image px)
+        A = np.vstack([a["affine"].numpy(), [0, 0, 1]])
+        corners = np.linalg.inv(A)[:2] @ np.array([[-0.5, 63.5, 63.5, -0.5], [-0.5, -0.5, 63.5, 63.5], [1, 1, 1, 1]])
+        x0, y0, x1, y1 = corners[0].min(), corners[1].min(), corners[0].max(), corners[1].max()
+        own = [inf["bbox_visib"] for g, inf in zip(gt[str(frame.im_id)], info[str(frame.im_id)])
+               if g["obj_id"] == a["obj_id"] and inf["bbox_visib"][2] > 0]
+        assert own
+        for bx, by, bw, bh in own:
+            assert x1 <= bx + 1 or bx + bw <= x0 + 1 or y1 <= by + 1 or by + bh <= y0 + 1, (i, (x0, y0, x1, y1), own)
+        # the box keeps the instance's size: same crop scale as its positive crop
+        np.testing.assert_allclose(a["box"][2:].numpy(), plain[i]["box"][2:].numpy())
+    assert 0.25 * len(mixed) <= n_neg <= 0.75 * len(mixed)
+    with pytest.raises(ValueError, match="negative_fraction must be in"):
+        KPDCropDataset(lmo_dir, negative_fraction=1.0, **common)

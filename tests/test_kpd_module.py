@@ -265,3 +265,25 @@ def test_training_step_adds_the_weighted_coordinate_loss():
         _module(loss={"coord_weight": 1.0, "coord_window": 0})
     with pytest.raises(ValueError, match="coord_weight must be a number >= 0"):
         _module(loss={"coord_weight": -1.0})
+
+
+def test_training_step_negative_crops_learn_empty_heatmaps():
+    """A crop flagged ``negative`` (kpd6d.kpd.crops) is trained towards all-zero heatmaps with full weight,
+    even with visibility weighting, and adds nothing to the coordinate loss; positive crops are unchanged."""
+    torch.manual_seed(0)
+    module = _module(loss={"coord_weight": 2.0, "visibility_weighted": True, "invisible_weight": 0.0})
+    _, items = _scene(module)
+    batch = _collate(items)
+    batch["heatmaps"] = module.targets(batch["keypoints"])
+    batch["negative"] = torch.tensor([0.0, 1.0, 0.0, 1.0])
+    batch["visibility"] = batch["visibility"] * (1 - batch["negative"])[:, None]  # as the dataset gives them
+    with torch.no_grad():
+        total = module.training_step(batch, 0)
+        pred = module(batch["image"], batch["obj_index"]).float()
+    pos = torch.tensor([0, 2])
+    neg = torch.tensor([1, 3])
+    per_kp_pos = ((pred[pos] - batch["heatmaps"][pos]) ** 2).mean(dim=(-1, -2))  # (2, k)
+    per_kp_neg = (pred[neg] ** 2).mean(dim=(-1, -2))  # towards zero everywhere
+    heat = module.loss_scale * (per_kp_pos.sum() + per_kp_neg.sum()) / (4 * K_PTS)
+    num, den = module.coordinate_loss_terms(pred[pos], batch["keypoints"][pos], batch["visibility"][pos])
+    assert total.item() == pytest.approx(heat.item() + 2.0 * num.item() / den.item(), rel=1e-5)

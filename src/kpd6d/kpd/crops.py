@@ -6,6 +6,13 @@ detector's box), enlarged by the codec's ``crop_scale``, resized to its ``input_
 projected with the (symmetry-canonicalised) GT pose and mapped into the crop; the codec's target
 heatmaps for all keypoints (visible or not) and per-keypoint visibility flags.
 
+Negative crops (``negative_fraction`` p > 0, for training): an item is, with probability p, a crop of
+the same size elsewhere in its image — centred on another annotated instance (another object) or
+anywhere — that does not touch any visible box of the instance's object; its target heatmaps are all
+zero (``negative`` 1, every keypoint invisible). The network then learns that a crop without its object
+has no keypoints, so its heatmap maxima (the keypoint confidences) tell a detector's false boxes on
+clutter from true ones when candidates are verified (:mod:`kpd6d.pnp.estimator`).
+
 :func:`inference_crops` makes the same crops of a batch of image tensors on their device (kornia's
 ``warp_affine``), as the KPD's inference does.
 
@@ -86,7 +93,8 @@ class KPDCropDataset(Dataset):
     ``keypoints_image`` (k, 2) image px; ``visibility`` (k,) float {0, 1}; ``heatmaps`` (k, S/s, S/s)
     (when ``return_heatmaps``); ``affine`` (2, 3) image → crop; ``box`` (4,) the box cropped
     (after box augmentation); ``K`` (3, 3); ``R``, ``t`` (canonicalised GT pose); ``obj_id``;
-    ``obj_index`` (index into ``obj_ids``).
+    ``obj_index`` (index into ``obj_ids``); ``negative`` (float, 1 for a negative crop: ``heatmaps``
+    zero, ``visibility`` zero, ``keypoints`` where the projections fall, outside the crop).
 
     ``codec`` (a :class:`~kpd6d.kpd.codec.HeatmapCodec` or its config) sets the crop size, crop scale
     and targets; the separate ``input_size`` / ``out_stride`` / ``sigma`` / ``crop_scale`` (older
@@ -100,7 +108,8 @@ class KPDCropDataset(Dataset):
                  detections: str | os.PathLike | None = None, detection_iou: float = 0.5,
                  box_augment: Callable | None = None, min_visib_fract: float = 0.1,
                  visibility: str = "auto", return_heatmaps: bool = True, max_instances: int | None = None,
-                 models: Sequence | None = None, image_cache_mb: float = 0.0, codec: Any = None) -> None:
+                 models: Sequence | None = None, image_cache_mb: float = 0.0, codec: Any = None,
+                 negative_fraction: float = 0.0) -> None:
         from kpd6d.data import BopDataset
 
         if box_source not in BOX_SOURCES:
@@ -128,6 +137,10 @@ class KPDCropDataset(Dataset):
         self._canon = {o: canonicalizer_for(m) for o, m in self.models.items()}
         self.box_source = box_source
         self.box_augment = box_augment
+        negative_fraction = float(negative_fraction)
+        if not 0.0 <= negative_fraction < 1.0:
+            raise ValueError(f"negative_fraction must be in [0, 1), got {negative_fraction}")
+        self.negative_fraction = negative_fraction
         self.visibility = visibility
         self.return_heatmaps = return_heatmaps
         self.detections = load_detection_boxes(detections) if box_source == "detections" else None
@@ -222,24 +235,51 @@ class KPDCropDataset(Dataset):
         return vis & inside & ((vals <= 0) | (z <= vals + tol))
 
     # -- item -------------------------------------------------------------------------------------
+    def _negative_box(self, frame, inst, box: np.ndarray, size: tuple[int, int],
+                      rng: np.random.Generator) -> np.ndarray | None:
+        """A box of ``box``'s size whose crop touches no visible box of ``inst``'s object in ``frame``:
+        centred on another object's instance (half of the tries, when there is one) or anywhere in the
+        image (``size``: its (H, W)); None when 20 tries find none."""
+        H, W = size
+        own = [np.asarray(self._box(frame, o), dtype=np.float64) for o in frame.instances if o.obj_id == inst.obj_id]
+        others = [o for o in frame.instances if o.obj_id != inst.obj_id]
+        side = self.crop_scale * max(box[2], box[3])  # the crop's side (image px)
+        for _ in range(20):
+            if others and rng.random() < 0.5:
+                ob = np.asarray(self._box(frame, others[int(rng.integers(len(others)))]), dtype=np.float64)
+                cx, cy = ob[0] + ob[2] / 2, ob[1] + ob[3] / 2
+            else:
+                cx, cy = rng.uniform(0, W), rng.uniform(0, H)
+            x0, y0 = cx - side / 2, cy - side / 2
+            if all(x0 >= b[0] + b[2] or b[0] >= x0 + side or y0 >= b[1] + b[3] or b[1] >= y0 + side for b in own):
+                return np.array([cx - box[2] / 2, cy - box[3] / 2, box[2], box[3]], dtype=np.float64)
+        return None
+
     def __getitem__(self, idx: int) -> dict[str, Any]:
         fi, ii = self.items[idx]
         frame = self.ds.frames[fi]
         inst = frame.instances[ii]
         box = self._box(frame, inst)
-        if self.box_augment is not None:
+        rng = None
+        if self.box_augment is not None or self.negative_fraction > 0:
             rng = np.random.default_rng(int(torch.randint(0, 2**31 - 1, ()).item()))
+        if self.box_augment is not None:
             box = self.box_augment(box, rng, obj_id=inst.obj_id)
+        rgb = self._rgb(fi)
+        negative = False
+        if self.negative_fraction > 0 and rng.random() < self.negative_fraction:
+            neg_box = self._negative_box(frame, inst, np.asarray(box, dtype=np.float64), rgb.shape[:2], rng)
+            if neg_box is not None:
+                box, negative = neg_box, True
         S = self.input_size
         A = self.codec.crop_affine(box)
-        rgb = self._rgb(fi)
         crop = cv2.warpAffine(rgb, A, (S, S), flags=cv2.INTER_LINEAR, borderMode=cv2.BORDER_CONSTANT, borderValue=0)
         R, t = self._canon[inst.obj_id](np.asarray(inst.R, dtype=np.float64), np.asarray(inst.t, dtype=np.float64))
         K = np.asarray(frame.K, dtype=np.float64)
         uv_img, z = project_points(self.keypoints_3d[inst.obj_id], K, R, t, return_depth=True)
         uv = affine_apply(A, uv_img)
         in_crop = (uv[:, 0] >= -0.5) & (uv[:, 0] < S - 0.5) & (uv[:, 1] >= -0.5) & (uv[:, 1] < S - 0.5) & (z > 0)
-        vis = self._visibility(frame, inst, uv_img, z, in_crop)
+        vis = np.zeros_like(in_crop) if negative else self._visibility(frame, inst, uv_img, z, in_crop)
         item = {
             "image": torch.from_numpy(np.ascontiguousarray(crop.transpose(2, 0, 1))).float().div_(255.0),
             "keypoints": torch.from_numpy(uv).float(),
@@ -252,9 +292,12 @@ class KPDCropDataset(Dataset):
             "t": torch.from_numpy(t),
             "obj_id": int(inst.obj_id),
             "obj_index": self.obj_ids.index(int(inst.obj_id)),
+            "negative": float(negative),
         }
         if self.return_heatmaps:
             item["heatmaps"] = self.codec.encode(item["keypoints"])[0]
+            if negative:
+                item["heatmaps"].zero_()
         return item
 
 

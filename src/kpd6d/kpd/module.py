@@ -198,14 +198,15 @@ class KPDModule(pl.LightningModule):
         v = visibility.float()
         return v + self.invisible_weight * (1 - v)
 
-    def coordinate_loss_terms(self, pred: torch.Tensor, keypoints_crop: torch.Tensor,
-                              visibility: torch.Tensor | None) -> tuple[torch.Tensor, torch.Tensor]:
+    def coordinate_loss_terms(self, pred: torch.Tensor, keypoints_crop: torch.Tensor, visibility: torch.Tensor | None,
+                              sample_weight: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
         """The coordinate loss (``loss.coord_weight``) as (weighted sum, sum of weights): the L1 distance
         (heatmap px) between the centroid of ``max(pred, 0)`` in a (2·``coord_window``+1)² window around
         each heatmap's maximum (the ``soft_argmax`` decoder; integral regression as in DSNT / Sun et
         al. 2018, differentiable in ``pred``) and ``keypoints_crop``. Keypoints outside the heatmap,
         which no centroid can reach, weigh 0; with ``visibility_weighted`` invisible ones weigh
-        ``invisible_weight``. Inference decodes with the codec's decoder, whatever it is."""
+        ``invisible_weight``; ``sample_weight`` (B,) scales each crop's (0: a negative crop). Inference
+        decodes with the codec's decoder, whatever it is."""
         coords, _ = self._coord_reader(pred)
         target = crop_to_heatmap(keypoints_crop.float(), self.codec.out_stride)
         S = self.codec.heatmap_size
@@ -213,6 +214,8 @@ class KPDModule(pl.LightningModule):
         vis_w = self._visibility_weights(visibility)
         if vis_w is not None:
             w = w * vis_w
+        if sample_weight is not None:
+            w = w * sample_weight[:, None].to(w.dtype)
         err = (coords - target).abs().sum(-1)
         return (err * w).sum(), w.sum()
 
@@ -232,10 +235,15 @@ class KPDModule(pl.LightningModule):
                 kps = moved
         target = batch["heatmaps"] if ("heatmaps" in batch and (self.augment is None or self.augment.geometric is None)) \
             else self.targets(kps)
+        positive = None  # negative crops (kpd6d.kpd.crops): empty targets that count in full, no coordinates
+        if batch.get("negative") is not None and bool(torch.as_tensor(batch["negative"]).any()):
+            positive = 1.0 - torch.as_tensor(batch["negative"], dtype=target.dtype, device=target.device)
+            target = target * positive[:, None, None, None]
+            vis = torch.where(positive[:, None] > 0, vis, torch.ones_like(vis))
         pred = self(images, batch["obj_index"])
         loss = self.heatmap_loss(pred, target, vis)
         if self.coord_weight > 0:
-            num, den = self.coordinate_loss_terms(pred, kps, vis)
+            num, den = self.coordinate_loss_terms(pred, kps, vis, positive)
             coord = num / den.clamp(min=1.0)
             self.log("train/coord_loss", coord, on_step=True, on_epoch=True, batch_size=images.shape[0])
             loss = loss + self.coord_weight * coord

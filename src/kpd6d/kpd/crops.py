@@ -241,7 +241,7 @@ class KPDCropDataset(Dataset):
         centred on another object's instance (half of the tries, when there is one) or anywhere in the
         image (``size``: its (H, W)); None when 20 tries find none."""
         H, W = size
-        own = [np.asarray(self._box(frame, o), dtype=np.float64) for o in frame.instances if o.obj_id == inst.obj_id]
+        own = np.array([self._box(frame, o) for o in frame.instances if o.obj_id == inst.obj_id], dtype=np.float64)
         others = [o for o in frame.instances if o.obj_id != inst.obj_id]
         side = self.crop_scale * max(box[2], box[3])  # the crop's side (image px)
         for _ in range(20):
@@ -250,8 +250,7 @@ class KPDCropDataset(Dataset):
                 cx, cy = ob[0] + ob[2] / 2, ob[1] + ob[3] / 2
             else:
                 cx, cy = rng.uniform(0, W), rng.uniform(0, H)
-            x0, y0 = cx - side / 2, cy - side / 2
-            if all(x0 >= b[0] + b[2] or b[0] >= x0 + side or y0 >= b[1] + b[3] or b[1] >= y0 + side for b in own):
+            if _iou_xywh(np.array([cx - side / 2, cy - side / 2, side, side]), own).max() <= 0:  # no overlap
                 return np.array([cx - box[2] / 2, cy - box[3] / 2, box[2], box[3]], dtype=np.float64)
         return None
 

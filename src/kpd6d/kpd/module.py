@@ -236,8 +236,10 @@ class KPDModule(pl.LightningModule):
         target = batch["heatmaps"] if ("heatmaps" in batch and (self.augment is None or self.augment.geometric is None)) \
             else self.targets(kps)
         positive = None  # negative crops (kpd6d.kpd.crops): empty targets that count in full, no coordinates
-        if batch.get("negative") is not None and bool(torch.as_tensor(batch["negative"]).any()):
-            positive = 1.0 - torch.as_tensor(batch["negative"], dtype=target.dtype, device=target.device)
+        negative = batch.get("negative")
+        negative = None if negative is None else torch.as_tensor(negative, dtype=target.dtype, device=target.device)
+        if negative is not None and bool(negative.any()):
+            positive = 1.0 - negative
             target = target * positive[:, None, None, None]
             vis = torch.where(positive[:, None] > 0, vis, torch.ones_like(vis))
         pred = self(images, batch["obj_index"])

@@ -152,6 +152,44 @@ def test_detection_dataset_reads_bop_boxes(toy_root):
         DetectionDataset(toy_root, "nope")
 
 
+def test_detection_dataset_train_crop_windows_and_clips_the_boxes(toy_root):
+    full = DetectionDataset(toy_root, "train", input_size=None, min_visib_fract=0.0)
+    ds = DetectionDataset(toy_root, "train", input_size=None, min_visib_fract=0.0, train_crop=[40, 30], min_kept=0.2)
+    torch.manual_seed(0)
+    origins = set()
+    for i in range(len(ds)):
+        img, t = ds[i]
+        whole, tf = full[i]
+        assert img.shape == (3, 30, 40)
+        # where the window lies: the one position where it equals the whole image (found by search)
+        hits = [(x, y) for y in range(whole.shape[1] - 29) for x in range(whole.shape[2] - 39)
+                if torch.equal(whole[:, y:y + 30, x:x + 40], img)]
+        assert len(hits) == 1
+        x0, y0 = hits[0]
+        origins.add((x0, y0))
+        # the expected boxes: each whole-image box clipped to the window, kept when >= 2 px and >= 20 % of its area
+        exp, ids = [], []
+        for b, oid in zip(tf["boxes"].tolist(), tf["obj_ids"].tolist()):
+            lo = (max(b[0] - x0, 0.0), max(b[1] - y0, 0.0))
+            hi = (min(b[0] + b[2] - x0, 40.0), min(b[1] + b[3] - y0, 30.0))
+            w, h = hi[0] - lo[0], hi[1] - lo[1]
+            if w >= 2 and h >= 2 and w * h >= 0.2 * b[2] * b[3]:
+                exp.append([lo[0], lo[1], w, h])
+                ids.append(oid)
+        assert len(exp) >= 1  # the window holds a box's centre, so that box keeps >= 1/4 of its area
+        torch.testing.assert_close(t["boxes"], torch.tensor(exp, dtype=torch.float32).reshape(-1, 4))
+        assert t["obj_ids"].tolist() == ids and t["labels"].tolist() == [ds.obj_ids.index(o) for o in ids]
+        torch.testing.assert_close(t["orig_boxes"], t["boxes"] + torch.tensor([x0, y0, 0.0, 0.0]))
+    assert len(origins) >= 4  # the windows move
+    # a window larger than the image is the whole image; bad sizes are refused with the value
+    img, t = DetectionDataset(toy_root, "train", input_size=[48, 32], train_crop=[64, 64])[0]
+    assert img.shape == (3, 32, 48) and len(t["boxes"]) == 2
+    with pytest.raises(ValueError, match="train_crop must be"):
+        DetectionDataset(toy_root, "train", train_crop=[0, 10])
+    with pytest.raises(ValueError, match="min_kept must be"):
+        DetectionDataset(toy_root, "train", min_kept=1.5)
+
+
 def test_match_boxes_and_box_error_stats():
     gt = torch.tensor([[10.0, 10, 20, 20], [50, 50, 10, 10], [80, 10, 10, 10]])
     gt_ids = torch.tensor([1, 2, 2])
@@ -212,7 +250,7 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     args = [sys.executable, "-m", "kpd6d.cli.train", "stage=detector", "detector=centernet_tiny",
             f"data.root={toy_root}", f"hydra.run.dir={run}", "detector_recipe@stage=fast", "stage.trainer.max_epochs=2",
             "stage.num_threads=1", "stage.batch_size=4", "detector.input_size=[96,64]", "stage.augment.scale=0.1",
-            "stage.ema_decay=0.9"]
+            "stage.ema_decay=0.9", "stage.train_crop=[64,48]"]  # trains on 64x48 windows, validates on 96x64
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     res = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
@@ -241,6 +279,9 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
                          cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
     assert "Restoring states from the checkpoint" in res.stderr + res.stdout
+    bad = {"stage.train_crop=[64,48]": "stage.train_crop=[0,48]", f"hydra.run.dir={run}": f"hydra.run.dir={tmp_path / 'bad'}"}
+    res = subprocess.run([bad.get(a, a) for a in args], cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
+    assert res.returncode != 0 and "train_crop must be (width, height) > 0, got [0, 48]" in res.stderr + res.stdout
     assert json.loads((run / "metrics.json").read_text())["epochs"] == 3
 
 

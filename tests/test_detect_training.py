@@ -184,8 +184,9 @@ def test_detection_dataset_train_crop_windows_and_clips_the_boxes(toy_root):
     # a window larger than the image is the whole image; bad sizes are refused with the value
     img, t = DetectionDataset(toy_root, "train", input_size=[48, 32], train_crop=[64, 64])[0]
     assert img.shape == (3, 32, 48) and len(t["boxes"]) == 2
-    with pytest.raises(ValueError, match="train_crop must be"):
-        DetectionDataset(toy_root, "train", train_crop=[0, 10])
+    for bad in ([0, 10], 64, [64, 48, 3], ["a", 4]):
+        with pytest.raises(ValueError, match="train_crop must be"):
+            DetectionDataset(toy_root, "train", train_crop=bad)
     with pytest.raises(ValueError, match="min_kept must be"):
         DetectionDataset(toy_root, "train", min_kept=1.5)
 

@@ -50,7 +50,10 @@ class DetectionDataset(Dataset):
         self._cls = {oid: i for i, oid in enumerate(self.obj_ids)}
         self.train_crop = None
         if train_crop is not None:
-            tc = tuple(int(v) for v in train_crop)
+            try:
+                tc = tuple(int(v) for v in train_crop)
+            except (TypeError, ValueError):
+                tc = ()
             if len(tc) != 2 or min(tc) <= 0:
                 raise DetectionInputError(f"train_crop must be (width, height) > 0, got {train_crop!r}")
             self.train_crop = tc

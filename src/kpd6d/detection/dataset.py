@@ -132,7 +132,8 @@ class DetectionDataset(Dataset):
 
 def _window_start(c: float, side: int, n: int, rng: np.random.Generator) -> int:
     """A start ``s`` uniform over the windows [s, s + side) within [0, n) that hold pixel ``floor(c)``."""
-    lo, hi = max(0, int(np.floor(c)) - side + 1), min(n - side, max(0, int(np.floor(c))))
+    p = int(np.floor(c))
+    lo, hi = max(0, p - side + 1), min(n - side, max(0, p))
     return int(rng.integers(min(lo, hi), hi + 1))
 
 

@@ -57,11 +57,11 @@ def train_detector(cfg: Any) -> Path:
     root = prepare_data(cfg.data.root, run_dir, to_plain(cfg.data.get("generate")), [cfg.data.train_split, cfg.data.val_split])
     common = dict(box=st.box, min_visib_fract=float(st.min_visib_fract), input_size=det_cfg.get("input_size"))
     stage_ids = to_plain(st.obj_ids)
-    train_crop = to_plain(st.get("train_crop"))  # windows of the network input (DetectionDataset)
-    train_ds = DetectionDataset(root, cfg.data.train_split, obj_ids=stage_ids, train_crop=train_crop, **common)
+    train_kw = dict(common, train_crop=to_plain(st.get("train_crop")))  # windows of the network input (training only)
+    train_ds = DetectionDataset(root, cfg.data.train_split, obj_ids=stage_ids, **train_kw)
     obj_ids = det_cfg.get("obj_ids") or train_ds.obj_ids
     if det_cfg.get("obj_ids") and sorted(det_cfg["obj_ids"]) != train_ds.obj_ids and not stage_ids:
-        train_ds = DetectionDataset(root, cfg.data.train_split, obj_ids=obj_ids, train_crop=train_crop, **common)
+        train_ds = DetectionDataset(root, cfg.data.train_split, obj_ids=obj_ids, **train_kw)
     det_cfg["obj_ids"] = [int(o) for o in obj_ids]
     val_split = cfg.data.val_split
     val_ds = None

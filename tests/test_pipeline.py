@@ -412,7 +412,7 @@ def test_verify_crops_verifies_with_few_crops_then_estimates_the_kept_with_crop_
         np.testing.assert_allclose(a["t"], b["t"], atol=1e-6)
         assert a["confidence"] == pytest.approx(b["confidence"])
     assert fast.last_timings["kpd"] > 0
-    assert check_candidates({"per_object": 5, "verify_crops": 1}) == (5, 0, 1.0, 1, 0.0)
+    assert check_candidates({"per_object": 5, "verify_crops": 1}) == (5, 0, 1.0, 1, 0.0, 1)
     assert candidates_record(5, 0, 1.0, 1) == {"per_object": 5, "verify_crops": 1}
     for bad in (0, 10, 1.5):
         with pytest.raises(ValueError, match=r"candidates.verify_crops must be an integer (>= 1|from 1 to 9)"):
@@ -449,7 +449,7 @@ def test_candidate_rank_weighs_the_detection_score():
         [{"obj_id": 3, "score": 0.2, "confidence": 0.5}, {"obj_id": 3, "score": 0.4, "confidence": 0.25}], 1.0
     )[0]["score"] == 0.4
 
-    assert check_candidates({"per_object": 5, "detector_weight": 0}) == (5, 0, 0.0, None, 0.0)
+    assert check_candidates({"per_object": 5, "detector_weight": 0}) == (5, 0, 0.0, None, 0.0, 1)
     assert candidates_record(5, 0, 1.0) == 5 and candidates_record(5, 0, 0.0) == {"per_object": 5, "detector_weight": 0.0}
     assert candidates_record(*check_candidates({"per_object": 2, "any_class": 1, "detector_weight": 2})) == {
         "per_object": 2, "any_class": 1, "detector_weight": 2.0}
@@ -458,8 +458,99 @@ def test_candidate_rank_weighs_the_detection_score():
     for bad in (-1, float("nan"), "high", True):
         with pytest.raises(ValueError, match=r"evaluate.candidates.detector_weight must be a finite number >= 0, got"):
             check_candidates({"per_object": 2, "detector_weight": bad}, key="evaluate.candidates")
-    with pytest.raises(ValueError, match=r"known: \['any_class', 'detector_weight', 'per_object', 'refine_weight', 'verify_crops'\]"):
+    with pytest.raises(ValueError, match=r"known: \['any_class', 'detector_weight', 'max_instances', 'per_object', 'refine_weight', 'verify_crops'\]"):
         check_candidates({"weight": 1})
+
+
+class MultiInstanceKPD:
+    """Exact keypoints on a box that overlaps an instance's true box (IoU >= 0.3: the best such instance of
+    the box's object), scattered low-confidence keypoints elsewhere (background)."""
+
+    def __init__(self, keypoints_3d, instances):
+        self.keypoints_3d = keypoints_3d
+        self.instances = instances  # [(image_index, obj_id, true box, R, t)]
+        self.rng = np.random.default_rng(0)
+
+    def predict_keypoints(self, images, boxes, image_index, obj_ids):
+        from kpd6d.pnp.estimator import _box_iou
+
+        kps, confs = [], []
+        for box, b, oid in zip(boxes.cpu().numpy().astype(np.float64), image_index.tolist(), obj_ids.tolist()):
+            mine = [(_box_iou(box, tb), R, t) for bb, o, tb, R, t in self.instances if (bb, o) == (b, oid)]
+            iou, R, t = max(mine, key=lambda m: m[0]) if mine else (0.0, None, None)
+            if iou >= 0.3:
+                kps.append(project_points(self.keypoints_3d[oid], LINEMOD_K, R, t))
+                confs.append(np.full(K_PTS, 0.9))
+            else:
+                x, y, w, h = box
+                kps.append(self.rng.uniform([x, y], [x + w, y + h], (K_PTS, 2)))
+                confs.append(np.full(K_PTS, 0.15))
+        return torch.tensor(np.stack(kps), dtype=torch.float32), torch.tensor(np.stack(confs), dtype=torch.float32)
+
+
+def test_candidates_keep_several_instances_of_an_object_with_max_instances():
+    """Two instances of object 1 in one image, a false box of it scoring above both and a second box on
+    instance A (IoU > 0.5 with A's): max_instances 1 keeps one pose (the best-ranked true one); 2 keeps a
+    right pose of each instance, never two of A; best_candidates drops zero-rank candidates and boxes that
+    overlap a kept one by SAME_INSTANCE_IOU; check_candidates / candidates_record carry max_instances."""
+    from kpd6d.pnp.estimator import SAME_INSTANCE_IOU, _box_iou, best_candidates, candidates_record, check_candidates
+
+    rng = np.random.default_rng(3)
+    kp3d = {1: rng.uniform(-40, 40, (K_PTS, 3))}
+    insts = []
+    for az, shift in ((0.3, [-120.0, 20.0, 0.0]), (1.9, [110.0, -30.0, 0.0])):
+        R, t = pose_from_view(az, 0.6, 800, 0.2)
+        t = t + np.asarray(shift)
+        insts.append((0, 1, bbox_from_points(project_points(kp3d[1], LINEMOD_K, R, t)), R, t))
+    box_a, box_b = insts[0][2], insts[1][2]
+    dup_a = box_a + np.array([0.05, 0.05, 0.0, 0.0]) * box_a[[2, 3, 2, 3]]  # same instance, shifted 5 %
+    assert _box_iou(dup_a, box_a) > SAME_INSTANCE_IOU and _box_iou(box_a, box_b) == 0.0
+    decoy = np.array([280.0, 380.0, 80.0, 80.0])
+    boxes = np.stack([decoy, dup_a, box_a, box_b])
+    targets = [{"boxes": boxes, "obj_ids": np.array([1, 1, 1, 1]), "scores": np.array([0.95, 0.9, 0.8, 0.7])}]
+
+    def run(candidates):
+        pipe = PosePipeline(DETECTORS.build("oracle", one_per_object=False), MultiInstanceKPD(kp3d, insts),
+                            pnp="sqpnp", top_l=None, device="cpu", candidates=candidates)
+        return pipe.predict_batch(_images(1), LINEMOD_K, targets)[0]
+
+    def nearest(p):  # (instance index, translation error mm)
+        err = [np.linalg.norm(p["t"] - t) if p["ok"] else np.inf for *_, t in insts]
+        return int(np.argmin(err)), float(min(err))
+
+    one = run({"per_object": 4})
+    assert len(one) == 1 and one[0]["candidates"] == 4 and one[0]["score"] == pytest.approx(0.9)  # dup_a: A
+    assert nearest(one[0])[0] == 0 and nearest(one[0])[1] < 1.0
+    two = run({"per_object": 4, "max_instances": 2})
+    assert [p["score"] for p in two] == pytest.approx([0.9, 0.7]) and all(p["candidates"] == 4 for p in two)
+    assert [nearest(p)[0] for p in two] == [0, 1] and max(nearest(p)[1] for p in two) < 1.0
+    four = run({"per_object": 4, "max_instances": 4})  # box_a (A again) is never kept beside dup_a
+    scores = [round(p["score"], 3) for p in four]
+    assert 0.8 not in scores and {0.9, 0.7} <= set(scores)
+
+    # the pure helper: rank order, zero-rank candidates and overlapping boxes dropped, the cap
+    b0, b1, b2 = [0, 0, 10, 10], [4, 0, 10, 10], [50, 50, 10, 10]  # IoU(b0, b1) = 0.6 / 1.4 = 0.43
+    poses = [{"obj_id": 1, "score": 0.9, "confidence": 0.5, "box": b0},
+             {"obj_id": 1, "score": 0.8, "confidence": 0.5, "box": list(np.add(b0, [1, 0, 0, 0]))},  # IoU 0.82
+             {"obj_id": 1, "score": 0.6, "confidence": 0.5, "box": b1},
+             {"obj_id": 1, "score": 0.7, "confidence": 0.0, "box": b2},  # failed: never a second instance
+             {"obj_id": 2, "score": 0.5, "confidence": 0.2, "box": b2}]
+    assert _box_iou(b0, b1) == pytest.approx(60 / 140)
+
+    def kept(m):
+        return [(p["obj_id"], p["score"]) for p in best_candidates(poses, 1.0, 0.0, m)]
+
+    assert kept(1) == [(1, 0.9), (2, 0.5)] == [(p["obj_id"], p["score"]) for p in best_candidates(poses)]
+    assert kept(2) == kept(5) == [(1, 0.9), (1, 0.6), (2, 0.5)]
+    assert check_candidates({"per_object": 3, "max_instances": 2}) == (3, 0, 1.0, None, 0.0, 2)
+    assert candidates_record(*check_candidates({"per_object": 3, "max_instances": 2})) == {
+        "per_object": 3, "max_instances": 2}
+    assert candidates_record(*check_candidates({"per_object": 3, "max_instances": 1})) == 3
+    with pytest.raises(ValueError, match=r"evaluate.candidates.max_instances=3 exceeds per_object=2"):
+        check_candidates({"per_object": 2, "max_instances": 3}, key="evaluate.candidates")
+    for bad in (0, 1.5, True):
+        with pytest.raises(ValueError, match=r"candidates.max_instances must be an integer >= 1, got"):
+            check_candidates({"per_object": 2, "max_instances": bad})
 
 
 def test_check_detector_overrides_names_the_key_and_value():
@@ -520,8 +611,8 @@ def test_any_class_candidates_recover_a_misclassified_object():
     dets = [{"image_index": 0, "obj_id": o, "score": s, "box": [s] * 4} for o, s in ((1, 0.9), (2, 0.5), (2, 0.4))]
     got = [(d["obj_id"], d["score"]) for d in top_candidates(dets, 1, any_class=2, obj_ids=[1, 2, 3])]
     assert got == [(1, 0.9), (2, 0.5), (2, 0.9), (3, 0.9), (1, 0.5), (3, 0.5)]
-    assert check_candidates(None) == (1, 0, 1.0, None, 0.0) and check_candidates(4) == (4, 0, 1.0, None, 0.0)
-    assert check_candidates({"any_class": 2}) == (1, 2, 1.0, None, 0.0) and candidates_record(1, 2) == {"per_object": 1, "any_class": 2}
+    assert check_candidates(None) == (1, 0, 1.0, None, 0.0, 1) and check_candidates(4) == (4, 0, 1.0, None, 0.0, 1)
+    assert check_candidates({"any_class": 2}) == (1, 2, 1.0, None, 0.0, 1) and candidates_record(1, 2) == {"per_object": 1, "any_class": 2}
     assert candidate_options({"per_object": 1, "any_class": 2}, "det.pt") == {
         "candidates": {"per_object": 1, "any_class": 2}, "one_per_object": False}
     assert candidate_options({"per_object": 3, "any_class": 0}, "det.pt") == {"candidates": 3, "one_per_object": False}

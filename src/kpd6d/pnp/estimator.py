@@ -10,10 +10,10 @@ box grown by this factor about its centre; the boxes reported and refined stay a
 keypoint is the median of its n locations, its confidence the mean),
 ``depth_calibration`` (each estimated translation multiplied by a factor, one for all objects or one per
 object: a depth calibration fitted on synthetic validation, :mod:`kpd6d.evaluation.calibration`),
-``candidates`` (for scenes where each object appears at most once, as in BOP's LM-O: the ``n``
-highest-scoring detections of each object in an image all go through KPD + PnP and the pose with the
-highest pose confidence times detection score is kept (``detector_weight``: the score's exponent): the
-keypoints verify the detector's hypotheses; give the detector
+``candidates`` (the ``n`` highest-scoring detections of each object in an image all go through KPD + PnP
+and the pose with the highest pose confidence times detection score is kept (``detector_weight``: the
+score's exponent): the keypoints verify the detector's hypotheses; one pose per object, as in BOP's LM-O,
+unless ``max_instances`` > 1 (then the next ones whose boxes do not overlap a kept one's); give the detector
 ``one_per_object=False`` so that it offers more than one; ``{per_object: n, any_class: m}`` also tries
 the m best boxes of each image, whatever their class, as every object) and ``last_timings``. A subclass says
 how its images become a batch and how its networks run:
@@ -44,7 +44,7 @@ from kpd6d.geometry import bbox_from_points, check_box_inputs, check_intrinsics,
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
-__all__ = ["CROP_TTA_JITTER", "DETECTOR_WEIGHT", "CandidateSpec", "PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options",
+__all__ = ["CROP_TTA_JITTER", "DETECTOR_WEIGHT", "SAME_INSTANCE_IOU", "CandidateSpec", "PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options",
            "candidates_record", "check_candidates", "combine_tta", "parse_depth_calibration", "scale_boxes",
            "top_candidates", "tta_boxes"]
 
@@ -53,6 +53,10 @@ __all__ = ["CROP_TTA_JITTER", "DETECTOR_WEIGHT", "CandidateSpec", "PoseEstimator
 #: (chosen on synthetic LM-O validation, session 18: AR_MSPD +0.012 / +0.021 over the pose confidence
 #: alone with full- / half-budget networks; docs/benchmarks.md)
 DETECTOR_WEIGHT = 1.0
+
+#: ``candidates.max_instances`` > 1: a candidate whose box overlaps a kept pose's box of the same object by
+#: this IoU or more is the same instance (the detector's own NMS threshold for one class is of this order)
+SAME_INSTANCE_IOU = 0.5
 
 #: ``crop_tta=n`` uses the first n of these crops of each box: (side factor, x shift, y shift as
 #: fractions of the box side) about the box centre — the box itself, then 0.9x / 1.1x, then shifted.
@@ -138,6 +142,8 @@ class CandidateSpec(NamedTuple):
     #                                  pose is then estimated again with crop_tta crops
     refine_weight: float = 0.0  # > 0: every candidate's pose goes through the refiner first, and its rank is
     #                             also multiplied by its refinement evidence ** this
+    max_instances: int = 1  # poses kept per object and image: the best-ranked candidate, then (m > 1) the next
+    #                         ones whose boxes overlap no kept one's by SAME_INSTANCE_IOU or more
 
     @property
     def verifies(self) -> bool:
@@ -147,11 +153,11 @@ class CandidateSpec(NamedTuple):
 
 def check_candidates(candidates: Any, error: type[Exception] = ValueError,
                      key: str = "candidates") -> CandidateSpec:
-    """``candidates`` as a :class:`CandidateSpec`: an int n >= 1 is ``(n, 0, DETECTOR_WEIGHT, None)`` (None:
-    ``(1, 0, DETECTOR_WEIGHT, None)``); a mapping ``{per_object: n, any_class: m, detector_weight: w,
-    verify_crops: c, refine_weight: r}`` (n >= 1, m >= 0, w and r >= 0 finite, c from 1 to
-    len(CROP_TTA_JITTER) or None; any may be left out) gives all five. Anything else raises ``error``
-    naming ``key`` and the value."""
+    """``candidates`` as a :class:`CandidateSpec`: an int n >= 1 is ``(n, 0, DETECTOR_WEIGHT, None, 0, 1)``
+    (None: n = 1); a mapping ``{per_object: n, any_class: m, detector_weight: w, verify_crops: c,
+    refine_weight: r, max_instances: i}`` (n >= 1, m >= 0, w and r >= 0 finite, c from 1 to
+    len(CROP_TTA_JITTER) or None, i >= 1; any may be left out) gives all six. Anything else raises
+    ``error`` naming ``key`` and the value."""
     def count(v, low: int, name: str) -> int:
         if isinstance(v, bool) or not isinstance(v, int | np.integer) or v < low:
             raise error(f"{name} must be an integer >= {low}, got {v!r}")
@@ -169,17 +175,23 @@ def check_candidates(candidates: Any, error: type[Exception] = ValueError,
             if isinstance(v, bool) or not _is_number(v) or not (math.isfinite(float(v)) and float(v) >= 0):
                 raise error(f"{key}.{name} must be a finite number >= 0, got {v!r}")
         c = spec.get("verify_crops")
-        return CandidateSpec(count(spec.get("per_object", 1), 1, f"{key}.per_object"),
-                             count(spec.get("any_class", 0), 0, f"{key}.any_class"), float(w),
-                             None if c is None else _crop_count(c, f"{key}.verify_crops", error), float(r))
+        n, i = count(spec.get("per_object", 1), 1, f"{key}.per_object"), count(spec.get("max_instances", 1), 1,
+                                                                               f"{key}.max_instances")
+        if i > n:
+            raise error(f"{key}.max_instances={i} exceeds per_object={n}: at most per_object boxes of an object are "
+                        "tried, and each gives at most one pose")
+        return CandidateSpec(n, count(spec.get("any_class", 0), 0, f"{key}.any_class"), float(w),
+                             None if c is None else _crop_count(c, f"{key}.verify_crops", error), float(r), i)
     return CandidateSpec(count(candidates, 1, key))
 
 
 def candidates_record(per_object: int, any_class: int = 0, detector_weight: float = DETECTOR_WEIGHT,
-                      verify_crops: int | None = None, refine_weight: float = 0.0) -> Any:
+                      verify_crops: int | None = None, refine_weight: float = 0.0, max_instances: int = 1) -> Any:
     """The plain value of a candidates setting: n, or the mapping of the keys that differ from n's
-    defaults (``{per_object: n, any_class: m, detector_weight: w, verify_crops: c, refine_weight: r}``)."""
-    if any_class == 0 and detector_weight == DETECTOR_WEIGHT and verify_crops is None and not refine_weight:
+    defaults (``{per_object: n, any_class: m, detector_weight: w, verify_crops: c, refine_weight: r,
+    max_instances: i}``)."""
+    if (any_class == 0 and detector_weight == DETECTOR_WEIGHT and verify_crops is None and not refine_weight
+            and max_instances == 1):
         return int(per_object)
     out: dict[str, Any] = {"per_object": int(per_object)}
     if any_class:
@@ -190,6 +202,8 @@ def candidates_record(per_object: int, any_class: int = 0, detector_weight: floa
         out["verify_crops"] = int(verify_crops)
     if refine_weight:
         out["refine_weight"] = float(refine_weight)
+    if max_instances != 1:
+        out["max_instances"] = int(max_instances)
     return out
 
 
@@ -244,24 +258,43 @@ def top_candidates(dets: list[dict], n: int, any_class: int = 0, obj_ids: Any = 
     return out
 
 
-def best_candidates(poses: list[dict], detector_weight: float = DETECTOR_WEIGHT, refine_weight: float = 0.0) -> list[dict]:
-    """One pose per object of one image: among its candidates, the one with the highest pose
-    ``confidence`` times its detection ``score`` to the power ``detector_weight`` (0: the pose
-    confidence alone; a failed pose has confidence 0) times its refinement ``evidence`` (0 when
-    absent) to the power ``refine_weight`` (0: not used), ties to the higher detection score; in score
-    order. The kept pose records how many candidates it was chosen from (``candidates``)."""
-    best: dict[int, tuple] = {}
-    n: dict[int, int] = {}
+def best_candidates(poses: list[dict], detector_weight: float = DETECTOR_WEIGHT, refine_weight: float = 0.0,
+                    max_instances: int = 1) -> list[dict]:
+    """The poses kept of one image's candidates: per object, the one with the highest pose ``confidence``
+    times its detection ``score`` to the power ``detector_weight`` (0: the pose confidence alone; a failed
+    pose has confidence 0) times its refinement ``evidence`` (0 when absent) to the power ``refine_weight``
+    (0: not used), ties to the higher detection score. With ``max_instances`` = m > 1, up to m - 1 more
+    per object, next in that rank, each with a rank above 0 and a ``box`` whose IoU with every kept box of
+    its object is below :data:`SAME_INSTANCE_IOU` (a box that overlaps a kept one is another hypothesis of
+    the same instance). In score order; each kept pose records how many candidates its object had
+    (``candidates``)."""
+    ranked: dict[int, list[tuple]] = {}
     for p in poses:
-        o = p["obj_id"]
-        n[o] = n.get(o, 0) + 1
         rank = p["confidence"] * max(p["score"], 0.0) ** detector_weight  # 0 ** 0 = 1
         if refine_weight:
             rank *= max(p.get("evidence", 0.0), 0.0) ** refine_weight
-        key = (rank, p["score"])
-        if o not in best or key > best[o][0]:
-            best[o] = (key, p)
-    return [{**p, "candidates": n[p["obj_id"]]} for _, p in sorted(best.values(), key=lambda kp: -kp[1]["score"])]
+        ranked.setdefault(p["obj_id"], []).append(((rank, p["score"]), p))
+    kept = []
+    for cands in ranked.values():
+        cands.sort(key=lambda kp: kp[0], reverse=True)  # stable: equal keys keep their order
+        mine = [cands[0][1]]
+        for (rank, _), p in cands[1:]:
+            if len(mine) >= max_instances:
+                break
+            if rank > 0 and all(_box_iou(p["box"], q["box"]) < SAME_INSTANCE_IOU for q in mine):
+                mine.append(p)
+        kept += [{**p, "candidates": len(cands)} for p in mine]
+    return sorted(kept, key=lambda p: -p["score"])
+
+
+def _box_iou(a, b) -> float:
+    """IoU of two xywh boxes."""
+    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
+    iw = min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0])
+    ih = min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1])
+    inter = max(iw, 0.0) * max(ih, 0.0)
+    union = a[2] * a[3] + b[2] * b[3] - inter
+    return float(inter / union) if union > 0 else 0.0
 
 
 def _crop_count(v, name: str, error: type[Exception]) -> int:
@@ -389,7 +422,7 @@ class PoseEstimatorBase:
         if spec.verifies:
             if refined_all:  # every candidate refined, its evidence part of its rank
                 out, refine_s = self._refine(images, Ks, out)
-            out = [best_candidates(poses, spec.detector_weight, spec.refine_weight) for poses in out]
+            out = [best_candidates(poses, spec.detector_weight, spec.refine_weight, spec.max_instances) for poses in out]
             if crops != self.crop_tta:  # the kept candidates again, with crop_tta crops
                 out = self._reestimate(x, Ks, out)
         if not refined_all or crops != self.crop_tta:  # (else the kept poses are refined already)

@@ -472,11 +472,11 @@ class MultiInstanceKPD:
         self.rng = np.random.default_rng(0)
 
     def predict_keypoints(self, images, boxes, image_index, obj_ids):
-        from kpd6d.pnp.estimator import _box_iou
+        from kpd6d.geometry import box_iou_xywh
 
         kps, confs = [], []
         for box, b, oid in zip(boxes.cpu().numpy().astype(np.float64), image_index.tolist(), obj_ids.tolist()):
-            mine = [(_box_iou(box, tb), R, t) for bb, o, tb, R, t in self.instances if (bb, o) == (b, oid)]
+            mine = [(float(box_iou_xywh(box, tb)[0]), R, t) for bb, o, tb, R, t in self.instances if (bb, o) == (b, oid)]
             iou, R, t = max(mine, key=lambda m: m[0]) if mine else (0.0, None, None)
             if iou >= 0.3:
                 kps.append(project_points(self.keypoints_3d[oid], LINEMOD_K, R, t))
@@ -493,7 +493,13 @@ def test_candidates_keep_several_instances_of_an_object_with_max_instances():
     instance A (IoU > 0.5 with A's): max_instances 1 keeps one pose (the best-ranked true one); 2 keeps a
     right pose of each instance, never two of A; best_candidates drops zero-rank candidates and boxes that
     overlap a kept one by SAME_INSTANCE_IOU; check_candidates / candidates_record carry max_instances."""
-    from kpd6d.pnp.estimator import SAME_INSTANCE_IOU, _box_iou, best_candidates, candidates_record, check_candidates
+    from kpd6d.geometry import box_iou_xywh
+    from kpd6d.pnp.estimator import (
+        SAME_INSTANCE_IOU,
+        best_candidates,
+        candidates_record,
+        check_candidates,
+    )
 
     rng = np.random.default_rng(3)
     kp3d = {1: rng.uniform(-40, 40, (K_PTS, 3))}
@@ -504,7 +510,7 @@ def test_candidates_keep_several_instances_of_an_object_with_max_instances():
         insts.append((0, 1, bbox_from_points(project_points(kp3d[1], LINEMOD_K, R, t)), R, t))
     box_a, box_b = insts[0][2], insts[1][2]
     dup_a = box_a + np.array([0.05, 0.05, 0.0, 0.0]) * box_a[[2, 3, 2, 3]]  # same instance, shifted 5 %
-    assert _box_iou(dup_a, box_a) > SAME_INSTANCE_IOU and _box_iou(box_a, box_b) == 0.0
+    assert box_iou_xywh(dup_a, box_a)[0] > SAME_INSTANCE_IOU and box_iou_xywh(box_a, box_b)[0] == 0.0
     decoy = np.array([280.0, 380.0, 80.0, 80.0])
     boxes = np.stack([decoy, dup_a, box_a, box_b])
     targets = [{"boxes": boxes, "obj_ids": np.array([1, 1, 1, 1]), "scores": np.array([0.95, 0.9, 0.8, 0.7])}]
@@ -535,7 +541,7 @@ def test_candidates_keep_several_instances_of_an_object_with_max_instances():
              {"obj_id": 1, "score": 0.6, "confidence": 0.5, "box": b1},
              {"obj_id": 1, "score": 0.7, "confidence": 0.0, "box": b2},  # failed: never a second instance
              {"obj_id": 2, "score": 0.5, "confidence": 0.2, "box": b2}]
-    assert _box_iou(b0, b1) == pytest.approx(60 / 140)
+    np.testing.assert_allclose(box_iou_xywh(b0, [b1, b0, [20, 20, 5, 5]]), [60 / 140, 1.0, 0.0])  # by hand
 
     def kept(m):
         return [(p["obj_id"], p["score"]) for p in best_candidates(poses, 1.0, 0.0, m)]

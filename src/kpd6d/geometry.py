@@ -27,6 +27,7 @@ __all__ = [
     "affine_apply",
     "backproject",
     "bbox_from_points",
+    "box_iou_xywh",
     "box_problem",
     "box_to_crop_affine",
     "check_box_inputs",
@@ -402,6 +403,18 @@ def cv_pose_to_gl_model_view(R, t) -> np.ndarray:
 #: Detections whose box is narrower or lower than this (px) give no pose: their crop holds nothing
 #: a keypoint detector can localise (a 1x1 image gave three "ok" poses from zero-size boxes).
 MIN_BOX_PX = 2.0
+
+
+def box_iou_xywh(a, b) -> np.ndarray:
+    """IoU of box ``a`` (4,) with boxes ``b`` (N, 4), all xywh (numpy); (N,)."""
+    a = np.asarray(a, dtype=np.float64).reshape(4)
+    b = np.asarray(b, dtype=np.float64).reshape(-1, 4)
+    x1 = np.maximum(a[0], b[:, 0])
+    y1 = np.maximum(a[1], b[:, 1])
+    x2 = np.minimum(a[0] + a[2], b[:, 0] + b[:, 2])
+    y2 = np.minimum(a[1] + a[3], b[:, 1] + b[:, 3])
+    inter = np.clip(x2 - x1, 0, None) * np.clip(y2 - y1, 0, None)
+    return inter / np.maximum(a[2] * a[3] + b[:, 2] * b[:, 3] - inter, 1e-9)
 
 
 def box_problem(box, width: int, height: int, min_size: float = MIN_BOX_PX) -> str:

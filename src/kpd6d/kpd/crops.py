@@ -34,7 +34,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from kpd6d.geometry import affine_apply, project_points
+from kpd6d.geometry import affine_apply, box_iou_xywh, project_points
 from kpd6d.kpd.codec import build_codec
 
 __all__ = ["BOX_SOURCES", "VISIBILITY_MODES", "KPDCropDataset", "canonicalizer_for", "inference_crops",
@@ -53,16 +53,6 @@ def canonicalizer_for(model) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndar
     except ImportError as exc:  # pragma: no cover - kpd6d.symmetry is part of the library
         raise ImportError(f"object {model.obj_id} is symmetric but kpd6d.symmetry is unavailable: {exc}") from exc
     return handler_for_model(model).canonicalize
-
-
-def _iou_xywh(a: np.ndarray, b: np.ndarray) -> np.ndarray:
-    """IoU of box a (4,) with boxes b (N, 4)."""
-    x1 = np.maximum(a[0], b[:, 0])
-    y1 = np.maximum(a[1], b[:, 1])
-    x2 = np.minimum(a[0] + a[2], b[:, 0] + b[:, 2])
-    y2 = np.minimum(a[1] + a[3], b[:, 1] + b[:, 3])
-    inter = np.clip(x2 - x1, 0, None) * np.clip(y2 - y1, 0, None)
-    return inter / np.maximum(a[2] * a[3] + b[:, 2] * b[:, 3] - inter, 1e-9)
 
 
 def load_detection_boxes(path: str | os.PathLike) -> dict[tuple[int, int], list[tuple[int, np.ndarray, float]]]:
@@ -205,7 +195,7 @@ class KPDCropDataset(Dataset):
         if self.box_source == "detections":
             cands = [d for d in self.detections.get((frame.scene_id, frame.im_id), []) if d[0] == inst.obj_id]
             if cands:
-                ious = _iou_xywh(gt, np.stack([c[1] for c in cands]))
+                ious = box_iou_xywh(gt, np.stack([c[1] for c in cands]))
                 j = int(np.argmax(ious))
                 if ious[j] >= self.detection_iou:
                     return cands[j][1].copy()
@@ -250,7 +240,7 @@ class KPDCropDataset(Dataset):
                 cx, cy = ob[0] + ob[2] / 2, ob[1] + ob[3] / 2
             else:
                 cx, cy = rng.uniform(0, W), rng.uniform(0, H)
-            if _iou_xywh(np.array([cx - side / 2, cy - side / 2, side, side]), own).max() <= 0:  # no overlap
+            if box_iou_xywh(np.array([cx - side / 2, cy - side / 2, side, side]), own).max() <= 0:  # no overlap
                 return np.array([cx - box[2] / 2, cy - box[3] / 2, box[2], box[3]], dtype=np.float64)
         return None
 

@@ -40,7 +40,7 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from kpd6d.geometry import bbox_from_points, check_box_inputs, check_intrinsics, project_points
+from kpd6d.geometry import bbox_from_points, box_iou_xywh, check_box_inputs, check_intrinsics, project_points
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
@@ -281,20 +281,10 @@ def best_candidates(poses: list[dict], detector_weight: float = DETECTOR_WEIGHT,
         for (rank, _), p in cands[1:]:
             if len(mine) >= max_instances:
                 break
-            if rank > 0 and all(_box_iou(p["box"], q["box"]) < SAME_INSTANCE_IOU for q in mine):
+            if rank > 0 and (box_iou_xywh(p["box"], [q["box"] for q in mine]) < SAME_INSTANCE_IOU).all():
                 mine.append(p)
         kept += [{**p, "candidates": len(cands)} for p in mine]
     return sorted(kept, key=lambda p: -p["score"])
-
-
-def _box_iou(a, b) -> float:
-    """IoU of two xywh boxes."""
-    a, b = np.asarray(a, dtype=np.float64), np.asarray(b, dtype=np.float64)
-    iw = min(a[0] + a[2], b[0] + b[2]) - max(a[0], b[0])
-    ih = min(a[1] + a[3], b[1] + b[3]) - max(a[1], b[1])
-    inter = max(iw, 0.0) * max(ih, 0.0)
-    union = a[2] * a[3] + b[2] * b[3] - inter
-    return float(inter / union) if union > 0 else 0.0
 
 
 def _crop_count(v, name: str, error: type[Exception]) -> int:

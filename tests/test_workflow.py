@@ -251,3 +251,24 @@ def test_kpd_networks_manifest_errors(tmp_path):
         export_models(bad, "oracle", tmp_path / "export")
     with pytest.raises(ConfigError, match="kpd_networks='each' unknown; known: shared, per_object"):
         train_kpd_stage(_cfg(["kpd_networks=each"]), tmp_path / "kpd", tmp_path, tmp_path / "k.json")
+
+
+def test_kpd_checkpoint_picks_best_or_last_and_names_bad_values(tmp_path):
+    """kpd_checkpoint: the run evaluates the KPD's best.ckpt (default) or last.ckpt; when the chosen one is
+    missing, the other; an unknown name stops kpd6d-run before anything is made, listing the known ones."""
+    from kpd6d.config import ConfigError
+    from kpd6d.workflow import _train_one_kpd, run_experiment
+
+    kpd = tmp_path / "kpd"
+    (kpd / "checkpoints").mkdir(parents=True)
+    (kpd / "metrics.json").write_text("{}")  # a finished KPD stage: nothing is trained again
+    for name in ("best", "last"):
+        (kpd / "checkpoints" / f"{name}.ckpt").write_text(name)
+    args = (tmp_path, tmp_path / "k.json", [1])
+    assert _train_one_kpd(_cfg(), kpd, *args) == str(kpd / "checkpoints" / "best.ckpt")
+    assert _train_one_kpd(_cfg(["kpd_checkpoint=last"]), kpd, *args) == str(kpd / "checkpoints" / "last.ckpt")
+    (kpd / "checkpoints" / "last.ckpt").unlink()
+    assert _train_one_kpd(_cfg(["kpd_checkpoint=last"]), kpd, *args) == str(kpd / "checkpoints" / "best.ckpt")
+    with pytest.raises(ConfigError, match="kpd_checkpoint='final' unknown; known: best, last"):
+        run_experiment(_cfg(["kpd_checkpoint=final"]), tmp_path / "run")
+    assert not (tmp_path / "run").exists()

@@ -5,8 +5,9 @@ Steps, each skipped when its output already exists (so an interrupted run resume
 1. designate keypoints for every object (``keypoints.json``, via :mod:`kpd6d.keypoints.designate`);
 2. generate train / val / test render-and-paste data (``data/``, via :func:`kpd6d.synth.generate_dataset`);
 3. train the detector (``detector/detector.pt``) unless ``detector_ckpt`` is given or ``"oracle"``;
-4. train the KPD (``kpd/checkpoints/best.ckpt``; with ``kpd_networks=per_object`` one network per
-   object in ``kpd/obj_XXXXXX/`` and the manifest ``kpd/networks.json``) unless ``kpd_ckpt`` is given;
+4. train the KPD (``kpd/checkpoints/best.ckpt``, or ``last.ckpt`` with ``kpd_checkpoint=last``; with
+   ``kpd_networks=per_object`` one network per object in ``kpd/obj_XXXXXX/`` and the manifest
+   ``kpd/networks.json``) unless ``kpd_ckpt`` is given;
 5. evaluate on the test split (``eval/``: metrics.json, results.csv, report.md, plots, overlays;
    :func:`run_evaluation`, also the work of ``kpd6d-evaluate``).
 
@@ -112,12 +113,33 @@ def _kpd_networks(cfg) -> str:
     return value
 
 
+KPD_CHECKPOINTS = ("best", "last")
+
+
+def _kpd_checkpoint(cfg) -> str:
+    value = str(cfg.get("kpd_checkpoint", "best") or "best")
+    if value not in KPD_CHECKPOINTS:
+        from kpd6d.config import ConfigError
+
+        raise ConfigError(f"kpd_checkpoint={value!r} unknown; known: {', '.join(KPD_CHECKPOINTS)}")
+    return value
+
+
+def _kpd_checkpoint_file(cfg, run_dir: Path) -> Path:
+    """The trained KPD's checkpoint the run uses (``kpd_checkpoint``: best or last; the other when it is
+    missing, e.g. no validation ran)."""
+    choice = _kpd_checkpoint(cfg)
+    ckpt = run_dir / "checkpoints" / f"{choice}.ckpt"
+    other = run_dir / "checkpoints" / ("last.ckpt" if choice == "best" else "best.ckpt")
+    return ckpt if ckpt.is_file() or not other.is_file() else other
+
+
 def _train_one_kpd(cfg, run_dir: Path, root: Path, keypoints_file: Path, obj_ids, max_time=None,
                    what: str = "the KPD") -> str:
-    best = run_dir / "checkpoints" / "best.ckpt"
-    if (run_dir / "metrics.json").is_file() and best.is_file():
-        _log(f"KPD exists: {best}")
-        return str(best)
+    ckpt = _kpd_checkpoint_file(cfg, run_dir)
+    if (run_dir / "metrics.json").is_file() and ckpt.is_file():
+        _log(f"KPD exists: {ckpt}")
+        return str(ckpt)
     from kpd6d.kpd.train import train_kpd
 
     _log(f"training {what}")
@@ -127,7 +149,7 @@ def _train_one_kpd(cfg, run_dir: Path, root: Path, keypoints_file: Path, obj_ids
     if max_time is not None:
         kcfg.stage.kpd.trainer.max_time = max_time
     train_kpd(kcfg)
-    return str(best if best.is_file() else run_dir / "checkpoints" / "last.ckpt")
+    return str(_kpd_checkpoint_file(cfg, run_dir))
 
 
 def _split_max_time(value, n: int) -> str | None:
@@ -330,6 +352,7 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
         check_stage_config(cfg.detector_stage, "detector_stage")
     if not cfg.kpd_ckpt:
         check_stage_config(cfg.kpd_stage, "kpd_stage")
+        _kpd_networks(cfg), _kpd_checkpoint(cfg)  # unknown names stop the run before any data is made
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     models = load_objects(cfg.objects)

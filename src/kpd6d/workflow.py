@@ -102,27 +102,25 @@ def train_detector_stage(cfg, run_dir: Path, root: Path) -> str:
 
 
 KPD_NETWORKS = ("shared", "per_object")
-
-
-def _kpd_networks(cfg) -> str:
-    value = str(cfg.get("kpd_networks", "shared") or "shared")
-    if value not in KPD_NETWORKS:
-        from kpd6d.config import ConfigError
-
-        raise ConfigError(f"kpd_networks={value!r} unknown; known: {', '.join(KPD_NETWORKS)}")
-    return value
-
-
 KPD_CHECKPOINTS = ("best", "last")
 
 
-def _kpd_checkpoint(cfg) -> str:
-    value = str(cfg.get("kpd_checkpoint", "best") or "best")
-    if value not in KPD_CHECKPOINTS:
+def _choice(cfg, key: str, known: tuple[str, ...]) -> str:
+    """The run setting ``key``, one of ``known`` (null / empty: the first); else a ConfigError listing them."""
+    value = str(cfg.get(key, known[0]) or known[0])
+    if value not in known:
         from kpd6d.config import ConfigError
 
-        raise ConfigError(f"kpd_checkpoint={value!r} unknown; known: {', '.join(KPD_CHECKPOINTS)}")
+        raise ConfigError(f"{key}={value!r} unknown; known: {', '.join(known)}")
     return value
+
+
+def _kpd_networks(cfg) -> str:
+    return _choice(cfg, "kpd_networks", KPD_NETWORKS)
+
+
+def _kpd_checkpoint(cfg) -> str:
+    return _choice(cfg, "kpd_checkpoint", KPD_CHECKPOINTS)
 
 
 def _kpd_checkpoint_file(cfg, run_dir: Path) -> Path:

@@ -55,7 +55,7 @@ __all__ = ["CROP_TTA_JITTER", "DETECTOR_WEIGHT", "SAME_INSTANCE_IOU", "Candidate
 DETECTOR_WEIGHT = 1.0
 
 #: ``candidates.max_instances`` > 1: a candidate whose box overlaps a kept pose's box of the same object by
-#: this IoU or more is the same instance (the detector's own NMS threshold for one class is of this order)
+#: this IoU or more is another hypothesis of the same instance (BOP's and COCO's match threshold)
 SAME_INSTANCE_IOU = 0.5
 
 #: ``crop_tta=n`` uses the first n of these crops of each box: (side factor, x shift, y shift as

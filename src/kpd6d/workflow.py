@@ -127,9 +127,8 @@ def _kpd_checkpoint_file(cfg, run_dir: Path) -> Path:
     """The trained KPD's checkpoint the run uses (``kpd_checkpoint``: best or last; the other when it is
     missing, e.g. no validation ran)."""
     choice = _kpd_checkpoint(cfg)
-    ckpt = run_dir / "checkpoints" / f"{choice}.ckpt"
-    other = run_dir / "checkpoints" / ("last.ckpt" if choice == "best" else "best.ckpt")
-    return ckpt if ckpt.is_file() or not other.is_file() else other
+    files = [run_dir / "checkpoints" / f"{n}.ckpt" for n in (choice, *(n for n in KPD_CHECKPOINTS if n != choice))]
+    return next((f for f in files if f.is_file()), files[0])
 
 
 def _train_one_kpd(cfg, run_dir: Path, root: Path, keypoints_file: Path, obj_ids, max_time=None,
@@ -350,7 +349,8 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
         check_stage_config(cfg.detector_stage, "detector_stage")
     if not cfg.kpd_ckpt:
         check_stage_config(cfg.kpd_stage, "kpd_stage")
-        _kpd_networks(cfg), _kpd_checkpoint(cfg)  # unknown names stop the run before any data is made
+        _kpd_networks(cfg)  # unknown names stop the run before any data is made
+        _kpd_checkpoint(cfg)
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     models = load_objects(cfg.objects)

@@ -175,8 +175,8 @@ def check_candidates(candidates: Any, error: type[Exception] = ValueError,
             if isinstance(v, bool) or not _is_number(v) or not (math.isfinite(float(v)) and float(v) >= 0):
                 raise error(f"{key}.{name} must be a finite number >= 0, got {v!r}")
         c = spec.get("verify_crops")
-        n, i = count(spec.get("per_object", 1), 1, f"{key}.per_object"), count(spec.get("max_instances", 1), 1,
-                                                                               f"{key}.max_instances")
+        n = count(spec.get("per_object", 1), 1, f"{key}.per_object")
+        i = count(spec.get("max_instances", 1), 1, f"{key}.max_instances")
         if i > n:
             raise error(f"{key}.max_instances={i} exceeds per_object={n}: at most per_object boxes of an object are "
                         "tried, and each gives at most one pose")

@@ -82,6 +82,27 @@ def test_blur_and_noise_probabilities_and_seeding():
     assert d.mean().abs() < 2e-3 and (d.std(1) <= 0.05 * 1.05).all() and d.std(1).max() > 0.02
 
 
+def test_sharpening_is_an_unsharp_mask_after_the_noise():
+    x = _images(B=3, H=30, W=36) * 0.6 + 0.2  # away from 0 and 1: the clip stays out of the comparison
+    y = photometric_batch(x, check_photometric({"sharpen_p": 1.0, "sharpen_amount": [0.8, 0.8]}))
+    for b in range(3):  # OpenCV's Gaussian (sigma 1, radius 3, reflect-101 border) as the reference blur
+        img = x[b].permute(1, 2, 0).numpy()
+        ref = np.clip(img + 0.8 * (img - cv2.GaussianBlur(img, (7, 7), 1.0, borderType=cv2.BORDER_REFLECT_101)), 0, 1)
+        np.testing.assert_allclose(y[b].permute(1, 2, 0).numpy(), ref, atol=2e-5)
+    # amount drawn per image, some images left alone with sharpen_p 0.5; the mean level is kept
+    cfg = check_photometric({"sharpen_p": 0.5, "sharpen_amount": [0.3, 1.5]})
+    many = _images(B=64) * 0.6 + 0.2
+    z = photometric_batch(many, cfg, torch.Generator().manual_seed(7))
+    changed = (z - many).abs().flatten(1).max(1).values > 1e-6
+    assert 10 < int(changed.sum()) < 54
+    assert (z - many).mean().abs() < 2e-3 and (z - many).abs().max() > 0.05
+    for bad in ([1.0, 0.5], [-0.1, 1.0]):
+        with pytest.raises(ValueError, match=r"augment.sharpen_amount must be \[lo, hi\]"):
+            check_photometric({"sharpen_amount": bad})
+    with pytest.raises(ValueError, match=r"augment.sharpen_p is a probability"):
+        check_photometric({"sharpen_p": 2.0})
+
+
 def test_both_stages_apply_it():
     from kpd6d.detection.augment import augment_batch
     from kpd6d.kpd.augment import BatchAugment

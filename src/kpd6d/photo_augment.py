@@ -1,7 +1,8 @@
 """Training-time photometric changes of image batches, shared by both stages' augmentation.
 
 The sim-to-real part of the augmentation: what a real camera does to a scene that a render does not
-(contrast and gamma of the response curve, white balance, defocus / motion blur, sensor noise).
+(contrast and gamma of the response curve, white balance, defocus / motion blur, sensor noise, the
+sharpening of the camera's image processing).
 :class:`kpd6d.kpd.augment.BatchAugment` (KPD) and :func:`kpd6d.detection.augment.augment_batch`
 (detector) both call :func:`photometric_batch`. Generation-time effects, baked into the saved
 images, are :mod:`kpd6d.synth.photometric`.
@@ -29,6 +30,8 @@ PHOTOMETRIC_DEFAULTS: dict = {
     "blur_sigma": (0.1, 1.5),  # ... with sigma (px) uniform in this range
     "noise_p": 0.0,           # probability of additive Gaussian noise ...
     "noise_std": 0.02,        # ... with std uniform in [0, noise_std] (0..1 scale)
+    "sharpen_p": 0.0,         # probability of an unsharp mask (Gaussian sigma 1 px), after the noise as in a camera ...
+    "sharpen_amount": (0.3, 1.5),  # ... x + a (x - blur(x)), amount a uniform in this range
 }
 
 
@@ -45,7 +48,7 @@ def check_photometric(cfg: Mapping | None, where: str = "augment") -> dict:
             raise ValueError(f"{where}.{key} is a factor >= 1 (1 = off), got {out[key]!r}")
     if not 0.0 <= float(out["channel_gain"]) < 1.0:
         raise ValueError(f"{where}.channel_gain must lie in [0, 1), got {out['channel_gain']!r}")
-    for key in ("blur_p", "noise_p"):
+    for key in ("blur_p", "noise_p", "sharpen_p"):
         if not 0.0 <= float(out[key]) <= 1.0:
             raise ValueError(f"{where}.{key} is a probability in [0, 1], got {out[key]!r}")
     lo, hi = (float(v) for v in out["blur_sigma"])
@@ -54,6 +57,10 @@ def check_photometric(cfg: Mapping | None, where: str = "augment") -> dict:
     if not float(out["noise_std"]) >= 0.0:
         raise ValueError(f"{where}.noise_std must be >= 0, got {out['noise_std']!r}")
     out["blur_sigma"] = (lo, hi)
+    lo, hi = (float(v) for v in out["sharpen_amount"])
+    if not 0.0 <= lo <= hi:
+        raise ValueError(f"{where}.sharpen_amount must be [lo, hi] with 0 <= lo <= hi, got {list(out['sharpen_amount'])}")
+    out["sharpen_amount"] = (lo, hi)
     return out
 
 
@@ -85,7 +92,9 @@ def gaussian_blur_batch(images: torch.Tensor, sigma: torch.Tensor) -> torch.Tens
 @torch.no_grad()
 def photometric_batch(images: torch.Tensor, cfg: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
     """Apply, per image and in this order: gamma, contrast, channel gains, blur (with ``blur_p``),
-    noise (with ``noise_p``); ``cfg`` as :func:`check_photometric` returns it. The result is clipped
+    noise (with ``noise_p``), an unsharp mask (with ``sharpen_p``: x + a (x - blur(x)), blur sigma 1 px;
+    it sharpens the noise too, as a camera's processing does); ``cfg`` as :func:`check_photometric`
+    returns it. The result is clipped
     to [0, 1]. With every setting off the images are returned unchanged."""
     B = images.shape[0]
     dev, dt = images.device, images.dtype
@@ -112,4 +121,9 @@ def photometric_batch(images: torch.Tensor, cfg: Mapping, generator: torch.Gener
         std = _uniform(B, 0.0, cfg["noise_std"], generator, dev, dt) * on
         noise = torch.randn(x.shape, generator=generator).to(dev, dt)
         x = x + noise * std[:, None, None, None]
+    if cfg["sharpen_p"] > 0.0:
+        on = (torch.rand(B, generator=generator) < cfg["sharpen_p"]).to(dev, dt)
+        a = (_uniform(B, *cfg["sharpen_amount"], generator, dev, dt) * on)[:, None, None, None]
+        if bool(on.any()):
+            x = x + a * (x - gaussian_blur_batch(x, torch.ones(B, device=dev, dtype=dt)))
     return x.clamp(0.0, 1.0) if x is not images else images

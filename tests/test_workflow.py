@@ -133,7 +133,7 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     assert full.designator.num_keypoints == 50 and full.designator_per_object[10].symmetry_aware
     assert full.data.options.layout == "tabletop" and full.data.num_test == 0
     assert full.detector.backbone == "efficientnet_lite0" and full.detector.backbone_pretrained == "imagenet"
-    assert full.kpd_stage.backbone.name == "efficientnet_lite0" and full.evaluate.oracle
+    assert full.kpd_stage.backbone.name == "efficientnet_lite2" and full.evaluate.oracle
     # inference settings chosen on synthetic validation: RANSAC + SQPnP refit on all keypoints, depth calibration
     assert full.pnp.name == "sqpnp_ransac" and full.pnp.relative_error == 0.2
     assert full.select.top_l is None and full.evaluate.depth_calibration == "auto"

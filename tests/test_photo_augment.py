@@ -82,7 +82,7 @@ def test_blur_and_noise_probabilities_and_seeding():
     assert d.mean().abs() < 2e-3 and (d.std(1) <= 0.05 * 1.05).all() and d.std(1).max() > 0.02
 
 
-def test_sharpening_is_an_unsharp_mask_after_the_noise():
+def test_sharpening_is_an_unsharp_mask():
     x = _images(B=3, H=30, W=36) * 0.6 + 0.2  # away from 0 and 1: the clip stays out of the comparison
     y = photometric_batch(x, check_photometric({"sharpen_p": 1.0, "sharpen_amount": [0.8, 0.8]}))
     for b in range(3):  # OpenCV's Gaussian (sigma 1, radius 3, reflect-101 border) as the reference blur

@@ -94,8 +94,7 @@ def photometric_batch(images: torch.Tensor, cfg: Mapping, generator: torch.Gener
     """Apply, per image and in this order: gamma, contrast, channel gains, blur (with ``blur_p``),
     noise (with ``noise_p``), an unsharp mask (with ``sharpen_p``: x + a (x - blur(x)), blur sigma 1 px;
     it sharpens the noise too, as a camera's processing does); ``cfg`` as :func:`check_photometric`
-    returns it. The result is clipped
-    to [0, 1]. With every setting off the images are returned unchanged."""
+    returns it. The result is clipped to [0, 1]. With every setting off the images are returned unchanged."""
     B = images.shape[0]
     dev, dt = images.device, images.dtype
     x = images

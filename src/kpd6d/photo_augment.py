@@ -89,6 +89,13 @@ def gaussian_blur_batch(images: torch.Tensor, sigma: torch.Tensor) -> torch.Tens
     return y.reshape(B, C, H, W)
 
 
+def _on_images(x: torch.Tensor, on: torch.Tensor, fn) -> torch.Tensor:
+    """``x`` with ``fn(x[i], i)`` in place of the images ``i`` where ``on`` (bool, (B,)) holds, out of place: the
+    filters run on the chosen images only."""
+    i = on.nonzero()[:, 0].to(x.device)
+    return x.index_copy(0, i, fn(x[i], i)) if len(i) else x
+
+
 @torch.no_grad()
 def photometric_batch(images: torch.Tensor, cfg: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
     """Apply, per image and in this order: gamma, contrast, channel gains, blur (with ``blur_p``),
@@ -112,17 +119,15 @@ def photometric_batch(images: torch.Tensor, cfg: Mapping, generator: torch.Gener
         x = x * gain[:, :, None, None]
     if cfg["blur_p"] > 0.0:
         on = torch.rand(B, generator=generator) < cfg["blur_p"]
-        sigma = _uniform(B, *cfg["blur_sigma"], generator, dev, dt) * on.to(dev, dt)
-        if bool(on.any()):
-            x = gaussian_blur_batch(x, sigma)
+        sigma = _uniform(B, *cfg["blur_sigma"], generator, dev, dt)
+        x = _on_images(x, on, lambda y, i: gaussian_blur_batch(y, sigma[i]))
     if cfg["noise_p"] > 0.0 and cfg["noise_std"] > 0.0:
         on = (torch.rand(B, generator=generator) < cfg["noise_p"]).to(dev, dt)
         std = _uniform(B, 0.0, cfg["noise_std"], generator, dev, dt) * on
         noise = torch.randn(x.shape, generator=generator).to(dev, dt)
         x = x + noise * std[:, None, None, None]
     if cfg["sharpen_p"] > 0.0:
-        on = (torch.rand(B, generator=generator) < cfg["sharpen_p"]).to(dev, dt)
-        a = (_uniform(B, *cfg["sharpen_amount"], generator, dev, dt) * on)[:, None, None, None]
-        if bool(on.any()):
-            x = x + a * (x - gaussian_blur_batch(x, torch.ones(B, device=dev, dtype=dt)))
+        on = torch.rand(B, generator=generator) < cfg["sharpen_p"]
+        a = _uniform(B, *cfg["sharpen_amount"], generator, dev, dt)[:, None, None, None]
+        x = _on_images(x, on, lambda y, i: y + a[i] * (y - gaussian_blur_batch(y, torch.ones(len(i), device=dev, dtype=dt))))
     return x.clamp(0.0, 1.0) if x is not images else images

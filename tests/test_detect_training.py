@@ -251,10 +251,12 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     args = [sys.executable, "-m", "kpd6d.cli.train", "stage=detector", "detector=centernet_tiny",
             f"data.root={toy_root}", f"hydra.run.dir={run}", "detector_recipe@stage=fast", "stage.trainer.max_epochs=2",
             "stage.num_threads=1", "stage.batch_size=4", "detector.input_size=[96,64]", "stage.augment.scale=0.1",
-            "stage.ema_decay=0.9", "stage.train_crop=[64,48]"]  # trains on 64x48 windows, validates on 96x64
+            "stage.ema_decay=0.9", "stage.train_crop=[64,48]",  # trains on 64x48 windows, validates on 96x64
+            "stage.malloc.mmap_threshold_mb=32", "stage.malloc.trim_threshold_mb=1024"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     res = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
     assert res.returncode == 0, res.stderr[-3000:]
+    assert "stage: glibc malloc mmap_threshold 32 MiB, trim_threshold 1024 MiB" in res.stdout
     det = load_detector(run / "detector.pt", obj_ids=[1, 5])
     assert det.obj_ids == [1, 2, 5] and det.input_size == (96, 64)
     assert det.box_stats is None or "offsets" in det.box_stats

@@ -52,6 +52,16 @@ def test_missing_data_root_is_named(tmp_path):
         train_kpd(_cfg(tmp_path, f"data.root={tmp_path / 'nowhere'}"))
 
 
+def test_allocator_setting_reaches_the_stage(tmp_path):
+    """stage.kpd.malloc goes to kpd6d.training.configure_malloc (a value glibc cannot take is named
+    before any data is generated)."""
+    from kpd6d.kpd.train import train_kpd
+
+    with pytest.raises(ValueError, match=r"stage.kpd.malloc.mmap_threshold_mb must be in \[0, 32\] MiB, got 64"):
+        train_kpd(_cfg(tmp_path, "stage.kpd.malloc.mmap_threshold_mb=64"))
+    assert not (tmp_path / "data").exists()
+
+
 def test_cosine_time_scheduler_takes_its_budget_from_max_time(tmp_path):
     from kpd6d.kpd.module import KPDModule
     from kpd6d.kpd.train import scheduler_config, train_kpd

@@ -38,6 +38,7 @@ __all__ = [
     "build_scheduler",
     "build_trainer",
     "check_optimizer",
+    "configure_malloc",
     "configure_optimization",
     "ema_callbacks",
     "fit",
@@ -208,15 +209,76 @@ def resolve_scheduler(scheduler: Mapping[str, Any] | None, trainer: Mapping[str,
     return scheduler
 
 
-# -- trainer ----------------------------------------------------------------------------------------
-def seed_and_threads(seed: int, num_threads: int | None = None) -> None:
-    """torch's intra-op threads (when given) and every seed (Lightning's ``seed_everything``)."""
+# -- process setup ----------------------------------------------------------------------------------
+#: glibc's ``mallopt`` parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
+#: glibc's largest ``M_MMAP_THRESHOLD`` on 64-bit (``DEFAULT_MMAP_THRESHOLD_MAX``)
+_MMAP_THRESHOLD_MAX_MB = 32
+
+
+def configure_malloc(malloc: Mapping[str, Any] | None, where: str = "malloc") -> dict[str, int]:
+    """Set glibc's allocator thresholds for this process (and the data-loader workers it forks later).
+
+    ``malloc: {mmap_threshold_mb, trim_threshold_mb}`` (null or a missing key: glibc's default).
+    By default glibc serves blocks >= 128 KiB (rising with use, up to 32 MiB) from fresh ``mmap``
+    pages and returns the top of the heap to the kernel once 2 x that is free: a training step that
+    allocates and frees hundreds of MiB of activations faults every page in again each step (about
+    40,000 minor page faults per detector step on the LM-O recipe). ``mmap_threshold_mb: 32`` (the
+    most glibc allows) and ``trim_threshold_mb: 1024`` keep the freed memory in the heap for the next
+    step instead (1-2 faults per step; docs/benchmarks.md "LM-O, session 28"). The same as the
+    environment variable ``GLIBC_TUNABLES=glibc.malloc.mmap_threshold=33554432:glibc.malloc.trim_threshold=1073741824``.
+
+    Returns what was set (``{"mmap_threshold": bytes, "trim_threshold": bytes}``; empty when
+    nothing was asked). Raises ``ValueError`` naming the field for a value glibc refuses, and
+    ``RuntimeError`` on a C library without ``mallopt`` (e.g. macOS, musl) when something was asked.
+    """
+    from kpd6d.config import to_float
+    from kpd6d.io import to_plain
+
+    cfg = to_plain(malloc) or {}
+    unknown = sorted(set(cfg) - {"mmap_threshold_mb", "trim_threshold_mb"})
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {unknown}; known: mmap_threshold_mb, trim_threshold_mb")
+    asked = {}
+    for key, param in (("mmap_threshold_mb", _M_MMAP_THRESHOLD), ("trim_threshold_mb", _M_TRIM_THRESHOLD)):
+        if cfg.get(key) is None:
+            continue
+        mb = to_float(cfg[key], f"{where}.{key}")
+        limit = _MMAP_THRESHOLD_MAX_MB if param == _M_MMAP_THRESHOLD else 2 ** 31 / 2 ** 20
+        if not 0 <= mb <= limit:
+            raise ValueError(f"{where}.{key} must be in [0, {limit:g}] MiB, got {cfg[key]!r}")
+        asked[key.replace("_mb", "")] = (param, int(mb * 2 ** 20))
+    if not asked:
+        return {}
+    import ctypes
+    import ctypes.util
+
+    try:
+        mallopt = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6").mallopt
+    except (OSError, AttributeError) as e:
+        raise RuntimeError(f"{where}: this C library has no mallopt (glibc only); set {where} to null") from e
+    for name, (param, value) in asked.items():
+        if mallopt(ctypes.c_int(param), ctypes.c_int(value)) != 1:
+            raise ValueError(f"{where}.{name}_mb: glibc's mallopt refused {value} bytes")
+    return {name: value for name, (_, value) in asked.items()}
+
+
+def seed_and_threads(seed: int, num_threads: int | None = None, malloc: Mapping[str, Any] | None = None,
+                     where: str = "stage") -> None:
+    """torch's intra-op threads (when given), the allocator's thresholds (:func:`configure_malloc`,
+    ``<where>.malloc``) and every seed (Lightning's ``seed_everything``)."""
     import pytorch_lightning as pl
     import torch
 
     if num_threads:
         torch.set_num_threads(int(num_threads))
+    done = configure_malloc(malloc, where=f"{where}.malloc")
+    if done:
+        print(f"{where}: glibc malloc " + ", ".join(f"{k} {v / 2 ** 20:g} MiB" for k, v in done.items()))
     pl.seed_everything(int(seed), workers=True)
+
+
+# -- trainer ----------------------------------------------------------------------------------------
 
 
 def build_trainer(run_dir: str | Path, trainer: Mapping[str, Any] | None, *, monitor: str, mode: str = "max",

@@ -47,7 +47,7 @@ def train_detector(cfg: Any) -> Path:
         raise KeyError("train_detector: config has no detector.name (use detector=centernet|fcos|faster_rcnn)")
     scheduler = resolve_scheduler(st.scheduler, st.trainer, where="stage")  # config errors before any data
     seed = int(cfg.seed)
-    seed_and_threads(seed, st.num_threads)
+    seed_and_threads(seed, st.num_threads, st.get("malloc"))
 
     run_dir = run_dir_of(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)

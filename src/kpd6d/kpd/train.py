@@ -74,7 +74,7 @@ def train_kpd(cfg) -> Path:
     build_codec(to_plain(k.codec))  # a bad crop size / stride / sigma, too
     run_dir = run_dir_of(cfg)
     run_dir.mkdir(parents=True, exist_ok=True)
-    seed_and_threads(cfg.seed, k.get("num_threads"))
+    seed_and_threads(cfg.seed, k.get("num_threads"), k.get("malloc"), where="stage.kpd")
     from kpd6d.synth.prepare import prepare_data
 
     root = prepare_data(cfg.data.root, run_dir, to_plain(cfg.data.get("generate")), [cfg.data.train_split, cfg.data.val_split])

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import re
 
 import pytest
 
@@ -21,6 +22,15 @@ def test_default_scenes_hold_one_object(tmp_path, capsys):
     assert "2 images 160x120, 1 object + 1 occluder(s)" in printed and "images/s" in printed
     gt = _scene_gt(out)
     assert len(gt) == 2 and all(len(v) == 1 for v in gt.values())
+
+
+def test_profile_breaks_the_render_time_into_passes(tmp_path, capsys):
+    assert main(["--num-images", "1", "--workers", "1", "--width", "160", "--height", "120", "--profile", "3"]) == 0
+    printed = capsys.readouterr().out
+    assert "profile, one process, 3 images" in printed
+    # one target + one occluder: a colour pass of both and a segmentation pass of the target per image
+    assert re.search(r"colour passes +[0-9.]+ ms +\(1\.00 per image", printed), printed
+    assert re.search(r"segmentation passes +[0-9.]+ ms +\([1-9][0-9.]* per image", printed), printed
 
 
 def test_experiment_options_are_the_recipes():

@@ -181,3 +181,19 @@ def test_closing_one_renderer_leaves_the_others_working(objs):
     c = Renderer(160, 120, LINEMOD_K * np.array([[0.25], [0.25], [1.0]]))  # and a new one works after all closed
     np.testing.assert_array_equal(c.render([(objs[0], R, t)]).depth, before)
     c.close()
+
+
+def test_pass_stats_count_the_passes_each_call_draws(renderer, objs):
+    """render() draws one colour pass (unless depth_only), one segmentation pass (unless masks=False)
+    and one more segmentation pass per instance asked for in full_masks (when there are several)."""
+    R, t = pose_from_view(1.0, 0.4, 700.0)
+    insts = [(objs[0], R, t), (objs[1], R, t + np.array([80.0, 0.0, 50.0])), (objs[2], R, t + np.array([-80.0, 0.0, 0.0]))]
+    renderer.pass_stats.clear()
+    renderer.render(insts)                                # colour + segmentation
+    renderer.render(insts, depth_only=True)               # segmentation
+    renderer.render(insts, masks=False)                   # colour
+    renderer.render(insts, full_masks=[0, 2])             # colour + segmentation + 2 alone
+    renderer.render(insts[:1], full_masks=True)           # colour + segmentation (one instance: its own mask)
+    counts = {kind: n for kind, (n, _) in renderer.pass_stats.items()}
+    assert counts == {"colour": 4, "segmentation": 6}
+    assert all(secs > 0 for _, secs in renderer.pass_stats.values())

@@ -27,6 +27,7 @@ def _load_triton_before_mesa() -> None:
 
 _load_triton_before_mesa()
 
+import time  # noqa: E402
 from collections.abc import Sequence  # noqa: E402
 from dataclasses import dataclass, field  # noqa: E402
 
@@ -167,6 +168,8 @@ class Renderer:
         # per primitive). Cached meshes stay uploaded to the GL context (see ``render``).
         Renderer._open += 1
         self._cache: dict[int, tuple] = {}
+        #: GL passes drawn so far, by kind ("colour", "segmentation"): (count, seconds incl. read-back)
+        self.pass_stats: dict[str, tuple[int, float]] = {}
         if not self.antialias:
             self._single_sample_framebuffer()
         self._keep_cached_meshes_resident()
@@ -275,6 +278,14 @@ class Renderer:
                     prim.material.roughnessFactor = rough
         return pm
 
+    def _timed_pass(self, kind: str, scene, **kwargs):
+        """One pyrender pass, counted in :attr:`pass_stats` under ``kind``."""
+        t0 = time.perf_counter()
+        out = self._renderer.render(scene, **kwargs)
+        n, s = self.pass_stats.get(kind, (0, 0.0))
+        self.pass_stats[kind] = (n + 1, s + time.perf_counter() - t0)
+        return out
+
     def _seg_pass(self, scene, nodes, only=None):
         """Depth (mm) and per-pixel instance ids (0: none) from pyrender's segmentation pass.
 
@@ -285,7 +296,7 @@ class Renderer:
         """
         seg_map = {node: (255, (i + 1) & 255, (i + 1) >> 8) for i, node in enumerate(nodes)
                    if only is None or i == only}  # pyrender's SEG pass draws only mapped nodes
-        seg, depth = self._renderer.render(scene, flags=self._pyrender.RenderFlags.SEG, seg_node_map=seg_map)
+        seg, depth = self._timed_pass("segmentation", scene, flags=self._pyrender.RenderFlags.SEG, seg_node_map=seg_map)
         valid = (seg[..., 0] == 255) & (depth > 0)
         if len(nodes) < 255:  # ids fit the green channel (uint8 arithmetic: several times faster)
             label = np.where(valid, seg[..., 1], np.uint8(0))
@@ -324,7 +335,7 @@ class Renderer:
         if depth_only:
             rgb = np.zeros((self.height, self.width, 3), np.uint8)
         else:
-            rgb, colour_depth = self._renderer.render(scene, flags=pyrender.RenderFlags.NONE)
+            rgb, colour_depth = self._timed_pass("colour", scene, flags=pyrender.RenderFlags.NONE)
             if not masks:
                 return RenderResult(np.ascontiguousarray(rgb[..., :3]), colour_depth.astype(np.float32, copy=False),
                                     [], [])

@@ -74,6 +74,7 @@ def _profile(args) -> None:
 
         comp.backgrounds.sample = timed_bg
         n = args.profile
+        renderer.pass_stats.clear()
         t_all = time.perf_counter()
         for i in range(n):
             t0 = time.perf_counter()
@@ -96,6 +97,9 @@ def _profile(args) -> None:
         print(f"\nprofile, one process, {n} images: {1000 * wall / n:.1f} ms/image")
         for k, v in stages.items():
             print(f"  {k:42s} {1000 * v / n:7.1f} ms")
+        for kind, (count, secs) in sorted(renderer.pass_stats.items()):
+            print(f"    {kind + ' passes':40s} {1000 * secs / n:7.1f} ms  ({count / n:.2f} per image, "
+                  f"{1000 * secs / max(count, 1):.1f} ms each)")
         gen._STATE["renderer"].close()
         gen._STATE.clear()
     finally:

@@ -259,6 +259,8 @@ def test_configure_malloc_names_bad_settings():
     assert configure_malloc(None) == {} and configure_malloc({"mmap_threshold_mb": None}) == {}
     with pytest.raises(ValueError, match=r"stage.malloc.mmap_threshold_mb must be in \[0, 32\] MiB, got 64"):
         configure_malloc({"mmap_threshold_mb": 64}, where="stage.malloc")
+    with pytest.raises(ValueError, match=r"malloc.trim_threshold_mb must be in \[0, 2047\] MiB, got 2048"):
+        configure_malloc({"trim_threshold_mb": 2048})  # a C int of bytes
     with pytest.raises(ValueError, match=r"stage.kpd.malloc: unknown key\(s\) \['trim_mb'\]"):
         configure_malloc({"trim_mb": 8}, where="stage.kpd.malloc")
     with pytest.raises(ValueError, match=r"malloc\.trim_threshold_mb"):

@@ -212,8 +212,8 @@ def resolve_scheduler(scheduler: Mapping[str, Any] | None, trainer: Mapping[str,
 # -- process setup ----------------------------------------------------------------------------------
 #: glibc's ``mallopt`` parameters (malloc.h)
 _M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-#: glibc's largest ``M_MMAP_THRESHOLD`` on 64-bit (``DEFAULT_MMAP_THRESHOLD_MAX``)
-_MMAP_THRESHOLD_MAX_MB = 32
+#: glibc's largest ``M_MMAP_THRESHOLD`` on 64-bit (``DEFAULT_MMAP_THRESHOLD_MAX``); mallopt takes a C int
+_MMAP_THRESHOLD_MAX_MB, _TRIM_THRESHOLD_MAX_MB = 32, 2047
 
 
 def configure_malloc(malloc: Mapping[str, Any] | None, where: str = "malloc") -> dict[str, int]:
@@ -225,7 +225,9 @@ def configure_malloc(malloc: Mapping[str, Any] | None, where: str = "malloc") ->
     allocates and frees hundreds of MiB of activations faults every page in again each step (about
     40,000 minor page faults per detector step on the LM-O recipe). ``mmap_threshold_mb: 32`` (the
     most glibc allows) and ``trim_threshold_mb: 1024`` keep the freed memory in the heap for the next
-    step instead (1-2 faults per step; docs/benchmarks.md "LM-O, session 28"). The same as the
+    step instead (1-2 faults per step). Measured: 1139 -> 961 ms per detector step in a step probe
+    (session 28), no step-count gain visible in whole stages on a host whose speed drifts by more
+    (session 29; docs/benchmarks.md): off by default. The same as the
     environment variable ``GLIBC_TUNABLES=glibc.malloc.mmap_threshold=33554432:glibc.malloc.trim_threshold=1073741824``.
 
     Returns what was set (``{"mmap_threshold": bytes, "trim_threshold": bytes}``; empty when
@@ -244,7 +246,7 @@ def configure_malloc(malloc: Mapping[str, Any] | None, where: str = "malloc") ->
         if cfg.get(key) is None:
             continue
         mb = to_float(cfg[key], f"{where}.{key}")
-        limit = _MMAP_THRESHOLD_MAX_MB if param == _M_MMAP_THRESHOLD else 2 ** 31 / 2 ** 20
+        limit = _MMAP_THRESHOLD_MAX_MB if param == _M_MMAP_THRESHOLD else _TRIM_THRESHOLD_MAX_MB
         if not 0 <= mb <= limit:
             raise ValueError(f"{where}.{key} must be in [0, {limit:g}] MiB, got {cfg[key]!r}")
         asked[key.replace("_mb", "")] = (param, int(mb * 2 ** 20))
@@ -279,8 +281,6 @@ def seed_and_threads(seed: int, num_threads: int | None = None, malloc: Mapping[
 
 
 # -- trainer ----------------------------------------------------------------------------------------
-
-
 def build_trainer(run_dir: str | Path, trainer: Mapping[str, Any] | None, *, monitor: str, mode: str = "max",
                   ema_decay: float | None = None, progress_refresh: int = 1, log_versions: bool = True):
     """A Lightning ``Trainer`` from a ``trainer:`` node (nulls dropped: Lightning's defaults).

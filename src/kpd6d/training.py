@@ -210,10 +210,9 @@ def resolve_scheduler(scheduler: Mapping[str, Any] | None, trainer: Mapping[str,
 
 
 # -- process setup ----------------------------------------------------------------------------------
-#: glibc's ``mallopt`` parameters (malloc.h)
-_M_TRIM_THRESHOLD, _M_MMAP_THRESHOLD = -1, -3
-#: glibc's largest ``M_MMAP_THRESHOLD`` on 64-bit (``DEFAULT_MMAP_THRESHOLD_MAX``); mallopt takes a C int
-_MMAP_THRESHOLD_MAX_MB, _TRIM_THRESHOLD_MAX_MB = 32, 2047
+#: the ``malloc`` settings: name -> (glibc's ``mallopt`` parameter (malloc.h), largest value in MiB: 32 is
+#: ``DEFAULT_MMAP_THRESHOLD_MAX`` on 64-bit, and mallopt takes a C int of bytes)
+_MALLOPT = {"mmap_threshold": (-3, 32), "trim_threshold": (-1, 2047)}
 
 
 def configure_malloc(malloc: Mapping[str, Any] | None, where: str = "malloc") -> dict[str, int]:
@@ -238,18 +237,19 @@ def configure_malloc(malloc: Mapping[str, Any] | None, where: str = "malloc") ->
     from kpd6d.io import to_plain
 
     cfg = to_plain(malloc) or {}
-    unknown = sorted(set(cfg) - {"mmap_threshold_mb", "trim_threshold_mb"})
+    known = [f"{name}_mb" for name in _MALLOPT]
+    unknown = sorted(set(cfg) - set(known))
     if unknown:
-        raise ValueError(f"{where}: unknown key(s) {unknown}; known: mmap_threshold_mb, trim_threshold_mb")
+        raise ValueError(f"{where}: unknown key(s) {unknown}; known: {', '.join(known)}")
     asked = {}
-    for key, param in (("mmap_threshold_mb", _M_MMAP_THRESHOLD), ("trim_threshold_mb", _M_TRIM_THRESHOLD)):
+    for name, (param, limit) in _MALLOPT.items():
+        key = f"{name}_mb"
         if cfg.get(key) is None:
             continue
         mb = to_float(cfg[key], f"{where}.{key}")
-        limit = _MMAP_THRESHOLD_MAX_MB if param == _M_MMAP_THRESHOLD else _TRIM_THRESHOLD_MAX_MB
         if not 0 <= mb <= limit:
-            raise ValueError(f"{where}.{key} must be in [0, {limit:g}] MiB, got {cfg[key]!r}")
-        asked[key.replace("_mb", "")] = (param, int(mb * 2 ** 20))
+            raise ValueError(f"{where}.{key} must be in [0, {limit}] MiB, got {cfg[key]!r}")
+        asked[name] = (param, int(mb * 2 ** 20))
     if not asked:
         return {}
     import ctypes

@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 import torch
 
-from kpd6d.photo_augment import check_photometric, gaussian_blur_batch, photometric_batch
+from kpd6d.photo_augment import amplitude_mix_batch, check_photometric, gaussian_blur_batch, photometric_batch
 
 
 def _images(B=4, H=40, W=50, lo=0.3, hi=0.7, seed=0):
@@ -118,3 +118,55 @@ def test_both_stages_apply_it():
     assert not torch.allclose(y, x) and torch.equal(k, kps)  # photometric only: keypoints stay
     with pytest.raises(ValueError, match="gamma"):
         BatchAugment(gamma=0.5)
+
+
+def _numpy_amplitude_mix(a: np.ndarray, b: np.ndarray, w: float) -> np.ndarray:
+    """Independent reference: full 2D FFT per channel, amplitude blended, a's phase kept."""
+    fa, fb = np.fft.fft2(a.astype(np.float64)), np.fft.fft2(b.astype(np.float64))
+    out = np.fft.ifft2(((1 - w) * np.abs(fa) + w * np.abs(fb)) * np.exp(1j * np.angle(fa)))
+    assert np.abs(out.imag).max() < 1e-9  # a blend of two Hermitian amplitude spectra keeps the image real
+    return out.real
+
+
+def test_amplitude_mix_matches_numpy_and_keeps_the_phase():
+    x = _images(B=3, H=24, W=31)  # odd width: the real FFT's last axis is not symmetric
+    w = torch.tensor([0.0, 0.4, 1.0])
+    partner = torch.tensor([1, 2, 0])
+    y = amplitude_mix_batch(x, w, partner)
+    for i in range(3):
+        ref = _numpy_amplitude_mix(x[i].numpy(), x[partner[i]].numpy(), float(w[i]))
+        np.testing.assert_allclose(y[i].numpy(), ref, atol=1e-5)
+    np.testing.assert_allclose(y[0].numpy(), x[0].numpy(), atol=1e-5)  # weight 0: the image itself
+    # weight 1: the partner's amplitude (so its mean grey, the DC term), the image's own phase
+    fy, fx, fp = (np.fft.fft2(v.numpy().astype(np.float64)) for v in (y[2], x[2], x[0]))
+    np.testing.assert_allclose(np.abs(fy), np.abs(fp), atol=1e-3)
+    strong = np.abs(fp) > 1e-2
+    dphi = np.angle(fy[strong] * np.conj(fx[strong]))
+    assert np.abs(dphi).max() < 1e-3
+
+
+def test_amplitude_mixing_in_the_batch_pipeline():
+    x = _images(B=6, H=32, W=32, lo=0.2, hi=0.8)
+    cfg = check_photometric({"amplitude_p": 1.0, "amplitude_mix": 0.5})
+    y = photometric_batch(x, cfg, torch.Generator().manual_seed(3))
+    y2 = photometric_batch(x, cfg, torch.Generator().manual_seed(3))
+    assert torch.equal(y, y2)  # seeded: repeatable
+    assert y.min() >= 0 and y.max() <= 1
+    assert all(not torch.allclose(y[i], x[i], atol=1e-3) for i in range(6))  # every image mixed (p = 1)
+    # a weight of at most 0.5 keeps each image closer to itself than to any other image of the batch
+    d = torch.cdist(y.flatten(1), x.flatten(1))
+    assert torch.equal(d.argmin(dim=1), torch.arange(6))
+    off = photometric_batch(x, check_photometric({"amplitude_p": 0.0}))
+    assert off is x
+    single = x[:1]
+    assert torch.equal(photometric_batch(single, cfg), single)  # no partner in a batch of one: unchanged
+    for bad, match in (({"amplitude_p": 1.5}, "amplitude_p is a probability"),
+                       ({"amplitude_mix": 1.2}, r"amplitude_mix is the largest weight.*\[0, 1\]")):
+        with pytest.raises(ValueError, match=match):
+            check_photometric(bad)
+    from kpd6d.kpd.augment import BatchAugment
+
+    aug = BatchAugment(hue=0, saturation=1, exposure=1, blur_p=0, noise_p=0, erase_p=0, amplitude_p=1.0)
+    kps = torch.rand(6, 5, 2) * 30
+    out, k, _ = aug(x, kps)
+    assert not torch.allclose(out, x) and torch.equal(k, kps)

@@ -2,7 +2,10 @@
 
 The sim-to-real part of the augmentation: what a real camera does to a scene that a render does not
 (contrast and gamma of the response curve, white balance, defocus / motion blur, sensor noise, the
-sharpening of the camera's image processing).
+sharpening of the camera's image processing), and one change of the image's "style" rather than its
+camera: amplitude mixing (each image's Fourier amplitude spectrum blended with another image's of the
+batch, its phase kept: textures, contrast and colour statistics change while edges and positions stay,
+as in FACT, Xu et al., "A Fourier-based Framework for Domain Generalization", CVPR 2021).
 :class:`kpd6d.kpd.augment.BatchAugment` (KPD) and :func:`kpd6d.detection.augment.augment_batch`
 (detector) both call :func:`photometric_batch`. Generation-time effects, baked into the saved
 images, are :mod:`kpd6d.synth.photometric`.
@@ -19,7 +22,8 @@ from collections.abc import Mapping
 import torch
 import torch.nn.functional as F
 
-__all__ = ["PHOTOMETRIC_DEFAULTS", "check_photometric", "gaussian_blur_batch", "photometric_batch"]
+__all__ = ["PHOTOMETRIC_DEFAULTS", "amplitude_mix_batch", "check_photometric", "gaussian_blur_batch",
+           "photometric_batch"]
 
 # all off: a stage that does not name them behaves as before
 PHOTOMETRIC_DEFAULTS: dict = {
@@ -32,6 +36,8 @@ PHOTOMETRIC_DEFAULTS: dict = {
     "noise_std": 0.02,        # ... with std uniform in [0, noise_std] (0..1 scale)
     "sharpen_p": 0.0,         # probability of an unsharp mask (Gaussian sigma 1 px), after the noise as in a camera ...
     "sharpen_amount": (0.3, 1.5),  # ... x + a (x - blur(x)), amount a uniform in this range
+    "amplitude_p": 0.0,       # probability that an image's amplitude spectrum is blended with another's (first) ...
+    "amplitude_mix": 1.0,     # ... with a weight uniform in [0, amplitude_mix] on the other's (amplitude_mix_batch)
 }
 
 
@@ -48,7 +54,7 @@ def check_photometric(cfg: Mapping | None, where: str = "augment") -> dict:
             raise ValueError(f"{where}.{key} is a factor >= 1 (1 = off), got {out[key]!r}")
     if not 0.0 <= float(out["channel_gain"]) < 1.0:
         raise ValueError(f"{where}.channel_gain must lie in [0, 1), got {out['channel_gain']!r}")
-    for key in ("blur_p", "noise_p", "sharpen_p"):
+    for key in ("blur_p", "noise_p", "sharpen_p", "amplitude_p"):
         if not 0.0 <= float(out[key]) <= 1.0:
             raise ValueError(f"{where}.{key} is a probability in [0, 1], got {out[key]!r}")
     lo, hi = (float(v) for v in out["blur_sigma"])
@@ -61,6 +67,9 @@ def check_photometric(cfg: Mapping | None, where: str = "augment") -> dict:
     if not 0.0 <= lo <= hi:
         raise ValueError(f"{where}.sharpen_amount must be [lo, hi] with 0 <= lo <= hi, got {list(out['sharpen_amount'])}")
     out["sharpen_amount"] = (lo, hi)
+    if not 0.0 <= float(out["amplitude_mix"]) <= 1.0:
+        raise ValueError(f"{where}.amplitude_mix is the largest weight of the other image's amplitude, in [0, 1], "
+                         f"got {out['amplitude_mix']!r}")
     return out
 
 
@@ -97,14 +106,36 @@ def _on_images(x: torch.Tensor, on: torch.Tensor, fn) -> torch.Tensor:
 
 
 @torch.no_grad()
+def amplitude_mix_batch(images: torch.Tensor, weight: torch.Tensor, partner: torch.Tensor) -> torch.Tensor:
+    """Each image ``i`` of ``images`` (B, C, H, W) with its per-channel Fourier amplitude replaced by
+    ``(1 - weight[i]) |F(x_i)| + weight[i] |F(x_partner[i])|`` and its phase kept (``weight`` (B,) in
+    [0, 1]; ``partner`` (B,) indices into the batch). Weight 0 returns the image (up to float rounding);
+    the result is not clipped."""
+    H, W = images.shape[-2:]
+    f = torch.fft.rfft2(images.float(), norm="ortho")
+    amp, phase = f.abs(), f.angle()
+    w = weight.to(amp)[:, None, None, None]
+    mixed = (1.0 - w) * amp + w * amp[partner]
+    return torch.fft.irfft2(torch.polar(mixed, phase), s=(H, W), norm="ortho").to(images.dtype)
+
+
+@torch.no_grad()
 def photometric_batch(images: torch.Tensor, cfg: Mapping, generator: torch.Generator | None = None) -> torch.Tensor:
-    """Apply, per image and in this order: gamma, contrast, channel gains, blur (with ``blur_p``),
+    """Apply, per image and in this order: amplitude mixing (with ``amplitude_p``, the partner another image
+    of the batch), gamma, contrast, channel gains, blur (with ``blur_p``),
     noise (with ``noise_p``), an unsharp mask (with ``sharpen_p``: x + a (x - blur(x)), blur sigma 1 px;
     it sharpens the noise too, as a camera's processing does); ``cfg`` as :func:`check_photometric`
     returns it. The result is clipped to [0, 1]. With every setting off the images are returned unchanged."""
     B = images.shape[0]
     dev, dt = images.device, images.dtype
     x = images
+    if cfg["amplitude_p"] > 0.0 and B > 1:
+        on = torch.rand(B, generator=generator) < cfg["amplitude_p"]
+        w = _uniform(B, 0.0, cfg["amplitude_mix"], generator, dev, dt)
+        # a partner other than the image itself: a random non-zero shift of the index
+        partner = (torch.arange(B) + torch.randint(1, B, (B,), generator=generator)) % B
+        if on.any():
+            x = torch.where(on.to(dev)[:, None, None, None], amplitude_mix_batch(x, w, partner.to(dev)), x)
     if cfg["gamma"] > 1.0:
         lg = math.log(cfg["gamma"])
         g = torch.exp(_uniform(B, -lg, lg, generator, dev, dt))

@@ -8,8 +8,9 @@
 2. colour: hue and saturation (``ColorJiggle``) and exposure (brightness factor in
    ``[1/exposure, exposure]``, the paper's ×1.5);
 3. Gaussian blur, Gaussian noise, random erasing (occlusion);
-4. optionally, the camera-response changes of :func:`kpd6d.photo_augment.photometric_batch`
-   (``contrast``, ``gamma``, ``channel_gain``; off by default), before the colour step.
+4. optionally, the changes of :func:`kpd6d.photo_augment.photometric_batch` (the camera response:
+   ``contrast``, ``gamma``, ``channel_gain``; amplitude mixing: ``amplitude_p``, ``amplitude_mix``;
+   off by default), before the colour step.
 
 Heatmap targets must be made *after* this step from the returned keypoints.
 """
@@ -30,14 +31,15 @@ class BatchAugment(nn.Module):
                  noise_std: float = 0.02, erase_p: float = 0.3, erase_scale: tuple[float, float] = (0.02, 0.15),
                  rotation_deg: float = 0.0, scale: tuple[float, float] | None = None,
                  translate: float = 0.0, geometric_p: float = 0.5, contrast: float = 1.0, gamma: float = 1.0,
-                 channel_gain: float = 0.0) -> None:
+                 channel_gain: float = 0.0, amplitude_p: float = 0.0, amplitude_mix: float = 1.0) -> None:
         super().__init__()
         import kornia.augmentation as KA
 
         from kpd6d.photo_augment import check_photometric
 
-        self.camera = check_photometric({"contrast": contrast, "gamma": gamma, "channel_gain": channel_gain})
-        self.camera_on = contrast > 1 or gamma > 1 or channel_gain > 0
+        self.camera = check_photometric({"contrast": contrast, "gamma": gamma, "channel_gain": channel_gain,
+                                         "amplitude_p": amplitude_p, "amplitude_mix": amplitude_mix})
+        self.camera_on = contrast > 1 or gamma > 1 or channel_gain > 0 or amplitude_p > 0
 
         if exposure < 1 or saturation < 1:
             raise ValueError(f"augment: exposure and saturation are factors >= 1, got {exposure}, {saturation}")

@@ -12,6 +12,7 @@ from scipy.spatial.transform import Rotation
 from kpd6d.evaluation import (
     add_error,
     adds_error,
+    keypoint_errors,
     mspd_error,
     mssd_error,
     proj2d_error,
@@ -240,3 +241,27 @@ def test_eggbox_symmetric_pose_is_accepted_by_adds_and_mssd(lmo_model_by_id, lmo
     # 2D projection: the plain error rejects the symmetric pose, the symmetric one accepts it
     assert proj2d_error(R_sym, t_sym, R_gt, t_gt, pts, LINEMOD_K) > 5.0
     assert proj2d_error(R_sym, t_sym, R_gt, t_gt, pts, LINEMOD_K, syms) < 1e-6
+
+
+def test_keypoint_errors_scale_offset_and_median_against_cv2():
+    rng = np.random.default_rng(3)
+    X = rng.uniform(-50, 50, (20, 3))
+    R, t = Rotation.from_euler("xyz", [20, -35, 70], degrees=True).as_matrix(), np.array([30.0, -20.0, 800.0])
+    g, _ = cv2.projectPoints(X, cv2.Rodrigues(R)[0], t, LINEMOD_K, None)
+    g = g[:, 0]
+    pred = g.mean(0) + 0.85 * (g - g.mean(0)) + [3.0, -4.0]  # drawn in to 85 %, moved (3, -4) px
+    e = keypoint_errors(pred, X, R, t, LINEMOD_K)
+    assert e["scale"] == pytest.approx(0.85, abs=1e-9) and e["centroid_px"] == pytest.approx(5.0, abs=1e-9)
+    assert e["err_px"] == pytest.approx(float(np.median([math.dist(p, q) for p, q in zip(pred, g)])), abs=1e-9)
+    # an object symmetric under 180 deg about z, keypoints drawn at GT composed with that symmetry: no error
+    S = np.eye(4)
+    S[:3, :3] = RZ180
+    gs, _ = cv2.projectPoints(X @ RZ180.T, cv2.Rodrigues(R)[0], t, LINEMOD_K, None)
+    e = keypoint_errors(gs[:, 0], X, R, t, LINEMOD_K, symmetries=[np.eye(4), S])
+    assert e["err_px"] < 1e-9 and e["scale"] == pytest.approx(1.0, abs=1e-9)
+    assert keypoint_errors(gs[:, 0], X, R, t, LINEMOD_K)["err_px"] > 5  # without the symmetry it is wrong
+    bad = pred.copy()
+    bad[0, 0] = np.nan
+    assert all(math.isnan(v) for v in keypoint_errors(bad, X, R, t, LINEMOD_K).values())
+    with pytest.raises(ValueError, match="19 2D keypoints for 20 3D keypoints"):
+        keypoint_errors(pred[:19], X, R, t, LINEMOD_K)

@@ -4,6 +4,7 @@ and BOP19 scoring built on them (:mod:`.bop19`, :mod:`.results_io`)."""
 from kpd6d.evaluation.errors import (
     add_error,
     adds_error,
+    keypoint_errors,
     mspd_error,
     mssd_error,
     proj2d_error,
@@ -18,6 +19,7 @@ __all__ = [
     "add_s_accuracy",
     "adds_error",
     "auc",
+    "keypoint_errors",
     "mspd_error",
     "mssd_error",
     "proj2d_accuracy",

@@ -19,6 +19,10 @@ Projection and transforms come from :mod:`kpd6d.geometry`.
 A non-finite estimate (a failed PnP returns NaN R, t) has error ``inf`` under every function.
 * ``symmetry_transforms``: the symmetry transform set of a models_info entry as bop_toolkit's
   ``misc.get_symmetry_transformations`` builds it (identity first).
+* ``keypoint_errors``: how the KPD's 2D keypoints of one instance sit against the projections of its 3D
+  keypoints at the GT pose (not a pose error: a diagnostic of the keypoint detector) - their median
+  distance (px), the offset of their centroid (px) and the scale of their pattern about its centroid
+  (1: the size the GT projects to; < 1: drawn in towards the middle, which PnP turns into depth).
 """
 
 from __future__ import annotations
@@ -43,6 +47,7 @@ __all__ = [
     "add_error",
     "adds_error",
     "as_symmetry_array",
+    "keypoint_errors",
     "mspd_error",
     "mssd_error",
     "proj2d_error",
@@ -239,3 +244,34 @@ def mssd_error(R_est, t_est, R_gt, t_gt, points, symmetries: Sequence | np.ndarr
 def mspd_error(R_est, t_est, R_gt, t_gt, points, K, symmetries: Sequence | np.ndarray | None = None) -> float:
     """BOP19 MSPD (px): as :func:`mssd_error` with the distance between projections by ``K``."""
     return float(_sym_distances(R_est, t_est, R_gt, t_gt, points, symmetries, K=_K(K)).min())
+
+
+def keypoint_errors(keypoints_2d, keypoints_3d, R_gt, t_gt, K, symmetries: Sequence | np.ndarray | None = None) -> dict:
+    """``{"err_px", "centroid_px", "scale"}`` of predicted keypoints ``keypoints_2d`` (k, 2) image px against
+    the projections of ``keypoints_3d`` (k, 3) mm at the GT pose: the median of the k distances, the distance
+    between the two patterns' centroids, and the least-squares scale ``s`` of the predicted pattern about its
+    centroid against the GT's (``argmin_s sum ||(p - p_mean) - s (g - g_mean)||^2``).
+
+    ``symmetries`` ((S, 4, 4), :func:`symmetry_transforms`): GT composed with the symmetry whose projections
+    lie nearest the prediction (smallest mean distance), as a KPD trained on canonical poses predicts them.
+    Non-finite keypoints or a degenerate GT pattern (all projections in one place) give NaN values."""
+    kp = np.asarray(keypoints_2d, dtype=np.float64).reshape(-1, 2)
+    X = _points(keypoints_3d)
+    nan = {"err_px": math.nan, "centroid_px": math.nan, "scale": math.nan}
+    if len(kp) != len(X):
+        raise ValueError(f"keypoint_errors: {len(kp)} 2D keypoints for {len(X)} 3D keypoints")
+    if not np.isfinite(kp).all():
+        return nan
+    S = as_symmetry_array(symmetries)
+    R_g, t_g = _pose(R_gt, t_gt)
+    Rs, ts = compose_poses(R_g, t_g, S[:, :3, :3], S[:, :3, 3])
+    gts = project_points(X, _K(K), Rs, ts).reshape(len(S), len(X), 2)
+    d = np.linalg.norm(gts - kp[None], axis=-1)  # (S, k)
+    best = int(np.argmin(d.mean(axis=1)))
+    g = gts[best]
+    a, b = g - g.mean(axis=0), kp - kp.mean(axis=0)
+    aa = float((a * a).sum())
+    if not aa > 1e-12:
+        return nan
+    return {"err_px": float(np.median(d[best])), "centroid_px": float(np.linalg.norm(kp.mean(0) - g.mean(0))),
+            "scale": float((a * b).sum() / aa)}

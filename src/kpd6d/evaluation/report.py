@@ -97,6 +97,20 @@ def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] 
                      f"(batch size {info.get('batch_size', '?')}); stage times per frame (ms): "
                      + ", ".join(f"{k} {1000 * v:.1f}" for k, v in metrics.get("stage_seconds_per_frame", {}).items()))
     lines.append(f"Failures (not detected or PnP not ok): {metrics.get('failures', 0)} of {m['n']} instances.")
+    kp_objs = [(oid, o) for oid, o in sorted(metrics["per_object"].items(), key=lambda kv: int(kv[0])) if "keypoints" in o]
+    if kp_objs:
+        lines += ["", "Keypoints against the ground truth (the KPD's 2D keypoints of each matched instance, the ones its "
+                  "pose came from, against its 3D keypoints projected at the GT pose; medians over the instances): "
+                  "error = median distance, centroid = offset of their centroid, scale = size of the predicted pattern "
+                  "about its centroid relative to the GT's (< 1: drawn in, which PnP turns into too large a depth).",
+                  "", "| object | id | n | error (px) | centroid (px) | scale |", "|---|---:|---:|---:|---:|---:|"]
+        for oid, o in kp_objs:
+            k = o["keypoints"]
+            lines.append(f"| {o.get('name') or '-'} | {oid} | {k['n']} | {k['err_px']:.1f} | {k['centroid_px']:.1f} | "
+                         f"{k['scale']:.3f} |")
+        k = m.get("keypoints")
+        if k:
+            lines.append(f"| **mean** | | {k['n']} | {k['err_px']:.1f} | {k['centroid_px']:.1f} | {k['scale']:.3f} |")
     det = metrics.get("detector")
     if det:
         names = {oid: o.get("name") or "-" for oid, o in metrics["per_object"].items()}

@@ -31,7 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd6d.evaluation.errors import add_error, adds_error, proj2d_error, symmetry_transforms
+from kpd6d.evaluation.errors import add_error, adds_error, keypoint_errors, proj2d_error, symmetry_transforms
 from kpd6d.evaluation.recall import add_s_accuracy, auc, proj2d_accuracy, recall_at
 from kpd6d.evaluation.results_io import PoseResult, write_bop_results
 from kpd6d.io import atomic_write_image, atomic_write_json, atomic_write_text, read_json
@@ -83,10 +83,17 @@ def match_predictions(instances, preds: Sequence[dict], points: dict, symmetric:
 
     ``symmetries``: {obj_id: (S, 4, 4) transforms} (:func:`~kpd6d.evaluation.errors.symmetry_transforms`);
     an object listed there gets the symmetric 2D projection error (minimum over its symmetries)."""
+    return [(add, proj) for _, add, proj in _assign(instances, preds, points, symmetric, K, symmetries)]
+
+
+def _assign(instances, preds, points, symmetric, K, symmetries) -> list[tuple[int | None, float, float]]:
+    """:func:`match_predictions` with the index into ``preds`` of each instance's match (None: unmatched):
+    the ok predictions by falling score, each to the free instance of its object it is nearest (ADD(-S))."""
     symmetries = symmetries or {}
-    errs = [(np.inf, np.inf)] * len(instances)
+    out: list[tuple[int | None, float, float]] = [(None, np.inf, np.inf)] * len(instances)
     free = set(range(len(instances)))
-    for p in sorted((p for p in preds if p.get("ok", True)), key=lambda p: -p["score"]):
+    for i in sorted((i for i, p in enumerate(preds) if p.get("ok", True)), key=lambda i: -preds[i]["score"]):
+        p = preds[i]
         cands = [j for j in free if instances[j].obj_id == p["obj_id"]]
         if not cands:
             continue
@@ -94,10 +101,10 @@ def match_predictions(instances, preds: Sequence[dict], points: dict, symmetric:
         pts = points[p["obj_id"]]
         add = [f(p["R"], p["t"], instances[j].R, instances[j].t, pts) for j in cands]
         j = cands[int(np.argmin(add))]
-        errs[j] = (float(min(add)), proj2d_error(p["R"], p["t"], instances[j].R, instances[j].t, pts, K,
-                                                 symmetries.get(p["obj_id"])))
+        out[j] = (i, float(min(add)), proj2d_error(p["R"], p["t"], instances[j].R, instances[j].t, pts, K,
+                                                   symmetries.get(p["obj_id"])))
         free.discard(j)
-    return errs
+    return out
 
 
 def compute_metrics(records: list[dict], diameters: dict[int, float], names: dict[int, str] | None = None,
@@ -118,12 +125,15 @@ def compute_metrics(records: list[dict], diameters: dict[int, float], names: dic
             "curves": {"proj2d": recall_at(proj, PX_THRESHOLDS).tolist(),
                        "add_s": recall_at(add / d, ADD_THRESHOLDS).tolist()},
         }
+        kp = _keypoint_summary([r["kp"] for r in records if r["obj_id"] == oid and "kp" in r])
+        if kp:
+            per_object[str(oid)]["keypoints"] = kp
     objs = list(per_object.values())
 
     def mean(key):
         return float(np.mean([o[key] for o in objs])) if objs else 0.0
 
-    return {
+    out = {
         "per_object": per_object,
         "mean": {
             "n": int(sum(o["n"] for o in objs)),
@@ -136,6 +146,22 @@ def compute_metrics(records: list[dict], diameters: dict[int, float], names: dic
         "curves": {"proj2d_thresholds": PX_THRESHOLDS.tolist(), "add_s_thresholds": ADD_THRESHOLDS.tolist()},
         "failures": int(sum(o["failures"] for o in objs)),
     }
+    kp_objs = [o["keypoints"] for o in objs if "keypoints" in o]
+    if kp_objs:  # means over the objects, as the other means
+        out["mean"]["keypoints"] = {"n": int(sum(k["n"] for k in kp_objs)),
+                                    **{key: float(np.mean([k[key] for k in kp_objs])) for key in ("err_px", "centroid_px", "scale")}}
+    return out
+
+
+def _keypoint_summary(errs: list[dict]) -> dict:
+    """Medians over an object's matched instances of :func:`~kpd6d.evaluation.errors.keypoint_errors`
+    (instances with NaN values left out); {} when there are none."""
+    rows = np.array([[e["err_px"], e["centroid_px"], e["scale"]] for e in errs], dtype=np.float64).reshape(-1, 3)
+    rows = rows[np.isfinite(rows).all(axis=1)]
+    if not len(rows):
+        return {}
+    med = np.median(rows, axis=0)
+    return {"n": len(rows), "err_px": float(med[0]), "centroid_px": float(med[1]), "scale": float(med[2])}
 
 
 def _load_done(path: Path) -> dict[tuple[int, int], dict]:
@@ -224,6 +250,8 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     points = {o: _eval_points(m) for o, m in models.items()}
     symmetric = {o: m.is_symmetric for o, m in models.items()}
     symmetries = {o: symmetry_transforms(m) for o, m in models.items() if m.is_symmetric}
+    keypoints_3d = {int(o): np.asarray(v, np.float64) for o, v in (getattr(getattr(pipeline, "kpd", None),
+                                                                           "keypoints_3d", None) or {}).items()}
 
     pred_path = out_dir / "predictions.jsonl"
     _check_resumable(out_dir, run_info, oracle)
@@ -238,8 +266,12 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
         rec = done[(f.scene_id, f.im_id)]
         preds = [{**p, "R": np.asarray(p["R"], float), "t": np.asarray(p["t"], float)} for p in rec["preds"]]
         insts = eval_instances(f)
-        for inst, (add, proj) in zip(insts, match_predictions(insts, preds, points, symmetric, f.K, symmetries)):
-            records.append({"scene_id": f.scene_id, "im_id": f.im_id, "obj_id": inst.obj_id, "add": add, "proj": proj})
+        for inst, (i, add, proj) in zip(insts, _assign(insts, preds, points, symmetric, f.K, symmetries)):
+            rec_i = {"scene_id": f.scene_id, "im_id": f.im_id, "obj_id": inst.obj_id, "add": add, "proj": proj}
+            kp3d = keypoints_3d.get(inst.obj_id)
+            if i is not None and "kp" in preds[i] and kp3d is not None:  # the keypoints that made the pose
+                rec_i["kp"] = keypoint_errors(preds[i]["kp"], kp3d, inst.R, inst.t, f.K, symmetries.get(inst.obj_id))
+            records.append(rec_i)
         for p in preds:
             if p["ok"]:
                 results.append(PoseResult(f.scene_id, f.im_id, p["obj_id"], p["score"], p["R"], p["t"], rec["time"]))
@@ -367,7 +399,9 @@ def _predict_frames(pipeline, frames, pred_path: Path, *, batch_size: int, oracl
                     rec = {"scene_id": batch[i].scene_id, "im_id": batch[i].im_id, "time": dt, "stages": timings,
                            "preds": [{"obj_id": int(p["obj_id"]), "score": float(p["score"]), "ok": bool(p["ok"]),
                                       "R": np.asarray(p["R"]).tolist(), "t": np.asarray(p["t"]).tolist(),
-                                      **({"refined": bool(p["refined"])} if "refined" in p else {})} for p in ps]}
+                                      **({"refined": bool(p["refined"])} if "refined" in p else {}),
+                                      **({"kp": np.round(np.asarray(p["keypoints_2d"], float), 2).tolist()}
+                                         if p.get("keypoints_2d") is not None else {})} for p in ps]}
                     fout.write(json.dumps(rec) + "\n")
                     fout.flush()
                 bar.update(len(g))

@@ -104,13 +104,10 @@ def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] 
                   "error = median distance, centroid = offset of their centroid, scale = size of the predicted pattern "
                   "about its centroid relative to the GT's (< 1: drawn in, which PnP turns into too large a depth).",
                   "", "| object | id | n | error (px) | centroid (px) | scale |", "|---|---:|---:|---:|---:|---:|"]
-        for oid, o in kp_objs:
-            k = o["keypoints"]
-            lines.append(f"| {o.get('name') or '-'} | {oid} | {k['n']} | {k['err_px']:.1f} | {k['centroid_px']:.1f} | "
-                         f"{k['scale']:.3f} |")
-        k = m.get("keypoints")
-        if k:
-            lines.append(f"| **mean** | | {k['n']} | {k['err_px']:.1f} | {k['centroid_px']:.1f} | {k['scale']:.3f} |")
+        rows = [(o.get("name") or "-", oid, o["keypoints"]) for oid, o in kp_objs]
+        rows += [("**mean**", "", m["keypoints"])] if m.get("keypoints") else []
+        lines += [f"| {name} | {oid} | {k['n']} | {k['err_px']:.1f} | {k['centroid_px']:.1f} | {k['scale']:.3f} |"
+                  for name, oid, k in rows]
     det = metrics.get("detector")
     if det:
         names = {oid: o.get("name") or "-" for oid, o in metrics["per_object"].items()}

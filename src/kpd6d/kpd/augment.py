@@ -21,6 +21,7 @@ import torch
 from torch import nn
 
 from kpd6d.geometry import affine_apply
+from kpd6d.photo_augment import check_photometric, photometric_batch
 
 __all__ = ["BatchAugment"]
 
@@ -35,11 +36,8 @@ class BatchAugment(nn.Module):
         super().__init__()
         import kornia.augmentation as KA
 
-        from kpd6d.photo_augment import check_photometric
-
         self.camera = check_photometric({"contrast": contrast, "gamma": gamma, "channel_gain": channel_gain,
                                          "amplitude_p": amplitude_p, "amplitude_mix": amplitude_mix})
-        self.camera_on = contrast > 1 or gamma > 1 or channel_gain > 0 or amplitude_p > 0
 
         if exposure < 1 or saturation < 1:
             raise ValueError(f"augment: exposure and saturation are factors >= 1, got {exposure}, {saturation}")
@@ -68,10 +66,7 @@ class BatchAugment(nn.Module):
             M = self.geometric.transform_matrix.to(x.dtype)
             if keypoints is not None:
                 keypoints = affine_apply(M[:, :2, :].to(keypoints.dtype), keypoints)
-        if self.camera_on:
-            from kpd6d.photo_augment import photometric_batch
-
-            x = photometric_batch(x, self.camera)
+        x = photometric_batch(x, self.camera)  # the images themselves while every setting is off
         if self.color is not None:
             x = self.color(x)
         if self.exposure > 1 and self.color_p > 0:

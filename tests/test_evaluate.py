@@ -227,7 +227,7 @@ def test_kpd6d_evaluate_cli_with_a_real_untrained_kpd(tmp_path, monkeypatch, cap
     out = tmp_path / "run"
     monkeypatch.setattr(sys, "argv", ["kpd6d-evaluate", f"data.root={root}", f"kpd_ckpt={ckpt}", "detector_ckpt=oracle",
                                       "device=cpu", "progress=false", "overlays=1", "pnp=epnp_ransac", "select.top_l=20",
-                                      "crop_tta=3", "refiner=region", "refiner.scales=[0.2,0.1]", f"hydra.run.dir={out}"])
+                                      "crop_tta={crops:3,stability:0.1}", "refiner=region", "refiner.scales=[0.2,0.1]", f"hydra.run.dir={out}"])
     main()
     m = json.loads((out / "metrics.json").read_text())
     # the region refiner on the dataset's own meshes, recorded with its settings; each pose says if it moved
@@ -236,7 +236,8 @@ def test_kpd6d_evaluate_cli_with_a_real_untrained_kpd(tmp_path, monkeypatch, cap
     assert preds and all("refined" in p for p in preds if p["ok"])
     assert m["mean"]["n"] == 4  # every instance evaluated, however bad the untrained KPD is
     assert m["run"]["pnp"]["name"] == "epnp_ransac" and m["run"]["top_l"] == 20 and m["run"]["device"] == "cpu"
-    assert m["run"]["crop_tta"] == 3 and "- crop_tta: `3`" in (out / "report.md").read_text()
+    assert m["run"]["crop_tta"] == {"crops": 3, "stability": 0.1}
+    assert "- crop_tta: `{'crops': 3, 'stability': 0.1}`" in (out / "report.md").read_text()
     for name in ("results.csv", "report.md", "accuracy_vs_px.png", "accuracy_vs_add.png", "overlays/000001_000000.png"):
         assert (out / name).is_file(), name
     assert "wrote" in capsys.readouterr().out

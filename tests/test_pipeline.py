@@ -2,6 +2,8 @@
 
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -694,6 +696,81 @@ def test_crop_tta_takes_the_median_of_the_crops_keypoints():
     assert len(errs) == 3 and min(errs) == pytest.approx(40.0, abs=1e-3)  # crop_tta=1: the first crop's keypoints, 40 px off
     for bad in (0, 10, 2.5, True, "3"):
         with pytest.raises(PipelineInputError, match="crop_tta must be an integer from 1 to 9"):
+            PosePipeline(DETECTORS.build("oracle"), FakeKPD({}, {}), pnp="epnp", device="cpu", crop_tta=bad)
+
+
+def test_crop_tta_stability_weighs_each_confidence_by_its_spread_over_the_crops():
+    """combine_tta(..., stability=τ) against a direct computation: confidence x exp(-(mad / (τ r))^2), mad the
+    median distance of a keypoint's crops from its median, r the RMS radius of the median pattern."""
+    from kpd6d.pnp.estimator import combine_tta
+
+    rng = np.random.default_rng(5)
+    n, N, k = 5, 3, 6
+    kp, conf = rng.normal(0, 20, size=(n * N, k, 2)), rng.uniform(0.2, 1.0, size=(n * N, k))
+    med, plain = combine_tta(kp, conf, n)
+    mk, mc = combine_tta(kp, conf, n, stability=0.2)
+    np.testing.assert_array_equal(mk, med)  # the locations do not change
+    for i in range(N):
+        rows = [j * N + i for j in range(n)]
+        pattern = np.array([[np.median(kp[rows, q, c]) for c in range(2)] for q in range(k)])
+        r = math.sqrt(np.mean(np.sum((pattern - pattern.mean(0)) ** 2, axis=1)))
+        for q in range(k):
+            mad = np.median([math.dist(kp[j, q], pattern[q]) for j in rows])
+            want = max(np.mean(conf[rows, q]) * math.exp(-((mad / (0.2 * r)) ** 2)), 1e-6)
+            assert mc[i, q] == pytest.approx(want, rel=1e-9)
+            assert mc[i, q] <= plain[i, q] + 1e-12
+
+
+class CropFollowingKPD(FakeKPD):
+    """Exact keypoints 0..5 in every crop (confidence 0.8); keypoints 6..11 placed from the crop itself:
+    20 px right of their GT plus the crop's own shift from the box (confidence 0.9, so top-l by confidence
+    alone would choose them) — their median over the crops is 20 px off and they move from crop to crop."""
+
+    def __init__(self, keypoints_3d, gt, boxes_by_key):
+        super().__init__(keypoints_3d, gt)
+        self.boxes_by_key = boxes_by_key
+
+    def predict_keypoints(self, images, boxes, image_index, obj_ids):
+        b = boxes.cpu().numpy().astype(np.float64)
+        kps, confs = [], []
+        for r, (im, oid) in enumerate(zip(image_index.tolist(), obj_ids.tolist())):
+            R, t, K = self.gt[(im, oid)]
+            uv = project_points(self.keypoints_3d[oid], K, R, t)
+            box = self.boxes_by_key[(im, oid)]
+            moved = (b[r, :2] + b[r, 2:] / 2) - (box[:2] + box[2:] / 2)  # the crop's centre shift
+            uv[6:] += np.array([20.0, 0.0]) + moved
+            kps.append(uv)
+            confs.append(np.r_[np.full(6, 0.8), np.full(6, 0.9)])
+        return torch.tensor(np.stack(kps)), torch.tensor(np.stack(confs))
+
+
+def test_crop_tta_stability_keeps_the_keypoints_the_image_pins_down():
+    """crop_tta {crops: 9, stability: 0.1} with top_l 6: the six keypoints that move with the crop lose their
+    weight, PnP gets the six exact ones and the GT pose; by confidence alone (crops 9, no stability) top-6 takes
+    the 20-px-off ones. The setting is checked (names the key) and recorded as given."""
+    from kpd6d.pnp.estimator import check_crop_tta, crop_tta_record
+
+    kp3d, gt, targets = _scene(np.random.default_rng(0))
+    boxes = {(b, int(o)): np.asarray(bx, float) for b, t in enumerate(targets) for bx, o in zip(t["boxes"], t["obj_ids"])}
+
+    def run(crop_tta):
+        pipe = PosePipeline(DETECTORS.build("oracle"), CropFollowingKPD(kp3d, gt, boxes), pnp="epnp", top_l=6,
+                            device="cpu", crop_tta=crop_tta)
+        return [(p, gt[(b, p["obj_id"])]) for b, preds in enumerate(pipe.predict_batch(_images(), LINEMOD_K, targets))
+                for p in preds]
+
+    for p, (R, t, _) in run({"crops": 9, "stability": 0.1}):
+        assert p["ok"] and rotation_error_deg(p["R"], R) < 0.1 and np.linalg.norm(p["t"] - t) < 1.0
+    off = [np.linalg.norm(p["t"] - t) for p, (R, t, _) in run(9)]
+    assert len(off) == 3 and min(off) > 5.0  # the shifted keypoints: the pose is off
+    assert check_crop_tta(3) == (3, None) and check_crop_tta({"crops": 9, "stability": 0.1}) == (9, 0.1)
+    assert check_crop_tta({"crops": 4}) == (4, None)
+    assert crop_tta_record(9, 0.1) == {"crops": 9, "stability": 0.1} and crop_tta_record(9) == 9
+    for bad, msg in [({"crops": 1, "stability": 0.1}, r"crop_tta.stability needs crops >= 2"),
+                     ({"crops": 9, "stability": -1}, r"crop_tta.stability must be a number > 0, got -1"),
+                     ({"crops": 12}, r"crop_tta.crops must be an integer from 1 to 9, got 12"),
+                     ({"crop": 9}, r"crop_tta: unknown key\(s\) \['crop'\]; known: crops, stability")]:
+        with pytest.raises(PipelineInputError, match=msg):
             PosePipeline(DETECTORS.build("oracle"), FakeKPD({}, {}), pnp="epnp", device="cpu", crop_tta=bad)
 
 

@@ -69,7 +69,7 @@ class PosePipeline(PoseEstimatorBase):
     def __init__(self, detector, kpd, pnp: Any = "epnp_ransac", top_l: int | None = 20,
                  device: str | torch.device | None = None, refine_boxes: int = 0, min_confidence: float = 0.0,
                  residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                 depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1) -> None:
+                 depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: Any = 1) -> None:
         if not hasattr(detector, "predict"):
             raise PipelineInputError(f"detector must have .predict(images, targets=None), got {type(detector).__name__}")
         if not hasattr(kpd, "predict_keypoints") or not hasattr(kpd, "keypoints_3d"):
@@ -88,7 +88,7 @@ class PosePipeline(PoseEstimatorBase):
                          top_l: int | None = 20, device: str | torch.device | None = None,
                          obj_ids: Sequence[int] | None = None, refine_boxes: int = 0, min_confidence: float = 0.0,
                          residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                         depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1,
+                         depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: Any = 1,
                          **detector_overrides: Any) -> PosePipeline:
         """Load a detector checkpoint (or ``"oracle"``) and a KPD checkpoint (or a networks manifest
         of one KPD per object, :mod:`kpd6d.kpd.ensemble`)."""
@@ -115,7 +115,7 @@ class PosePipeline(PoseEstimatorBase):
                     top_l: int | None = 20, detector: str = "export", obj_ids: Sequence[int] | None = None,
                     refine_boxes: int = 0, device: str | torch.device | None = None, threads: int | None = None,
                     min_confidence: float = 0.0, residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                    depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1, **detector_overrides: Any):
+                    depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: Any = 1, **detector_overrides: Any):
         """A pipeline from a ``kpd6d-export`` folder on ``backend`` (``kpd6d.deploy.BACKENDS``).
 
         ``onnxruntime`` / ``openvino``: a :class:`kpd6d.deploy.runtime.RuntimePipeline` (the same

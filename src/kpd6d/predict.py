@@ -333,7 +333,7 @@ def predict_from_config(cfg, out_dir: str | os.PathLike) -> dict:
                                     top_l=cfg.select.top_l, refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
                                     min_confidence=float(cfg.get("min_confidence", 0.0) or 0.0), device=cfg.device,
                                     box_scale=cfg_float(cfg, "box_scale", 1.0),
-                                    crop_tta=to_int(cfg.get("crop_tta", 1), "crop_tta"),
+                                    crop_tta=to_plain(cfg.get("crop_tta", 1)),
                                     depth_calibration=to_plain(cfg.get("depth_calibration", 1.0)),
                                     **candidate_options(cfg.get("candidates", 1), det, ValueError,
                                                         check_detector_overrides(to_plain(cfg.get("detector_overrides")))))

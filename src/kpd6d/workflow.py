@@ -212,7 +212,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     from kpd6d.detection.detectors import check_detector_overrides
     from kpd6d.evaluation.runner import evaluate
     from kpd6d.pipeline import PosePipeline
-    from kpd6d.pnp.estimator import candidate_options, candidates_record
+    from kpd6d.pnp.estimator import candidate_options, candidates_record, crop_tta_record
     from kpd6d.refinement import build_refiner
 
     root = Path(cfg.data.root)
@@ -233,7 +233,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
                                         device=cfg.device, obj_ids=obj_ids,
                                         refine_boxes=to_int(cfg.get("refine_boxes", 0) or 0, "refine_boxes"),
                                         box_scale=cfg_float(cfg, "box_scale", 1.0),
-                                        crop_tta=to_int(cfg.get("crop_tta", 1), "crop_tta"),
+                                        crop_tta=to_plain(cfg.get("crop_tta", 1)),
                                         depth_calibration=_depth_calibration(cfg.get("depth_calibration", 1.0)),
                                         **det_opts)
     covered = sorted(int(o) for o in pipeline.kpd.keypoints_3d)
@@ -247,7 +247,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
                                        source=f"{ds.models_dir}"))
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
-            **({"crop_tta": pipeline.crop_tta} if pipeline.crop_tta > 1 else {}),
+            **({"crop_tta": crop_tta_record(pipeline.crop_tta, pipeline.crop_tta_stability)} if pipeline.crop_tta > 1 else {}),
             **({"candidates": candidates_record(*pipeline.candidate_spec)} if pipeline.candidate_spec.verifies else {}),
             "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device),
             **({"refiner": pipeline.refiner.settings()} if pipeline.refiner is not None else {}),
@@ -288,7 +288,7 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
 
     from kpd6d.config import ConfigError
     from kpd6d.detection.detectors import check_detector_overrides
-    from kpd6d.pnp.estimator import candidates_record, check_candidates
+    from kpd6d.pnp.estimator import candidates_record, check_candidates, check_crop_tta, crop_tta_record
 
     return OmegaConf.create({
         "data": {"root": str(root), "split": split, "targets": "auto", "obj_ids": to_plain(cfg.objects.obj_ids),
@@ -296,7 +296,7 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
         "pnp": to_plain(cfg.pnp), "select": {"top_l": cfg.select.top_l}, "detector_ckpt": det, "kpd_ckpt": kpd,
         "batch_size": cfg_int(cfg, "evaluate.batch_size"), "refine_boxes": to_int(cfg.evaluate.get("refine_boxes", 0) or 0, "evaluate.refine_boxes"),
         "box_scale": cfg_float(cfg, "evaluate.box_scale", 1.0),
-        "crop_tta": to_int(cfg.evaluate.get("crop_tta", 1), "evaluate.crop_tta"),
+        "crop_tta": crop_tta_record(*check_crop_tta(to_plain(cfg.evaluate.get("crop_tta", 1)), ConfigError, "evaluate.crop_tta")),
         "candidates": candidates_record(*check_candidates(to_plain(cfg.evaluate.get("candidates", 1)), ConfigError,
                                                           "evaluate.candidates")),
         "detector_overrides": check_detector_overrides(to_plain(cfg.evaluate.get("detector_overrides")), ConfigError,

@@ -229,7 +229,7 @@ class RuntimePipeline(PoseEstimatorBase):
                  top_l: int | None = 20, refine_boxes: int = 0, detector: str = "export",
                  obj_ids: Sequence[int] | None = None, threads: int | None = None, min_confidence: float = 0.0,
                  residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                 depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1,
+                 depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: Any = 1,
                  **detector_overrides: Any) -> None:
         if backend not in RUNTIME_BACKENDS:
             raise ValueError(f"backend {backend!r} unknown; known: {', '.join(RUNTIME_BACKENDS)}")

@@ -7,7 +7,8 @@ detector's output, the estimation loop with box refinement (``refine_boxes``: re
 the object's surface points projected with the estimated pose), ``box_scale`` (the KPD crops on each
 box grown by this factor about its centre; the boxes reported and refined stay as they are),
 ``crop_tta`` (test-time crops: the KPD sees n jittered crops of each box, :data:`CROP_TTA_JITTER`, and each
-keypoint is the median of its n locations, its confidence the mean),
+keypoint is the median of its n locations, its confidence the mean; ``{crops: n, stability: τ}`` also weighs
+each confidence by how little the keypoint moves from crop to crop, :func:`combine_tta`),
 ``depth_calibration`` (each estimated translation multiplied by a factor, one for all objects or one per
 object: a depth calibration fitted on synthetic validation, :mod:`kpd6d.evaluation.calibration`),
 ``candidates`` (the ``n`` highest-scoring detections of each object in an image all go through KPD + PnP
@@ -45,7 +46,7 @@ from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
 __all__ = ["CROP_TTA_JITTER", "DETECTOR_WEIGHT", "SAME_INSTANCE_IOU", "CandidateSpec", "PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options",
-           "candidates_record", "check_candidates", "combine_tta", "parse_depth_calibration", "scale_boxes",
+           "candidates_record", "check_candidates", "check_crop_tta", "combine_tta", "crop_tta_record", "parse_depth_calibration", "scale_boxes",
            "top_candidates", "tta_boxes"]
 
 
@@ -72,13 +73,26 @@ def tta_boxes(boxes: np.ndarray, n: int) -> np.ndarray:
     return np.concatenate([scale_boxes(b + np.hstack([side * [dx, dy], 0 * side]), f) for f, dx, dy in CROP_TTA_JITTER[:n]])
 
 
-def combine_tta(kp2d: np.ndarray, conf: np.ndarray, n: int) -> tuple[np.ndarray, np.ndarray]:
+def combine_tta(kp2d: np.ndarray, conf: np.ndarray, n: int,
+                stability: float | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Keypoints (n * N, k, 2) and confidences (n * N, k) of :func:`tta_boxes`' crops → each keypoint's
-    coordinate-wise median over the n crops (robust to one crop's outlier) and its mean confidence."""
+    coordinate-wise median over the n crops (robust to one crop's outlier) and its mean confidence.
+
+    ``stability`` = τ > 0: each confidence is also multiplied by ``exp(-(mad / (τ r))²)``, where ``mad`` is
+    the median distance of the keypoint's n locations from their median and ``r`` the RMS distance of the
+    instance's median keypoints from their centroid. A keypoint the image pins down stays where it is
+    whichever crop the KPD sees; one the network places from where keypoints usually lie in a crop moves
+    with the crop, and loses weight (floor 1e-6, so it stays usable)."""
     kp = np.asarray(kp2d, dtype=np.float64)
     kp = kp.reshape(n, -1, *kp.shape[1:])
     c = np.asarray(conf, dtype=np.float64).reshape(n, kp.shape[1], -1)
-    return np.median(kp, axis=0), c.mean(axis=0)
+    med, mean = np.median(kp, axis=0), c.mean(axis=0)
+    if stability is not None:
+        mad = np.median(np.linalg.norm(kp - med[None], axis=-1), axis=0)  # (N, k)
+        r = np.sqrt(((med - med.mean(axis=1, keepdims=True)) ** 2).sum(-1).mean(-1))  # (N,)
+        rel = mad / (float(stability) * np.maximum(r, 1e-9))[:, None]
+        mean = np.maximum(mean * np.exp(-rel * rel), 1e-6)
+    return med, mean
 
 
 def scale_boxes(boxes: np.ndarray, factor: float) -> np.ndarray:
@@ -294,6 +308,29 @@ def _crop_count(v, name: str, error: type[Exception]) -> int:
     return int(v)
 
 
+def check_crop_tta(v: Any, error: type[Exception] = ValueError, key: str = "crop_tta") -> tuple[int, float | None]:
+    """``crop_tta``: n (an integer from 1 to len(CROP_TTA_JITTER)) or ``{crops: n, stability: τ}`` (τ > 0 or
+    None; :func:`combine_tta`) → (n, τ); anything else raises ``error`` naming ``key``."""
+    if not isinstance(v, Mapping):
+        return _crop_count(v, key, error), None
+    unknown = sorted(set(v) - {"crops", "stability"})
+    if unknown:
+        raise error(f"{key}: unknown key(s) {unknown}; known: crops, stability")
+    n = _crop_count(v.get("crops", 1), f"{key}.crops", error)
+    tau = v.get("stability")
+    if tau is None:
+        return n, None
+    tau = _positive_number(tau, f"{key}.stability", error)
+    if n < 2:
+        raise error(f"{key}.stability needs crops >= 2 (the keypoints' spread over the crops), got crops {n}")
+    return n, tau
+
+
+def crop_tta_record(n: int, stability: float | None = None) -> int | dict:
+    """The setting as written to run records: n, or ``{crops: n, stability: τ}``."""
+    return int(n) if stability is None else {"crops": int(n), "stability": float(stability)}
+
+
 def _positive_number(v, name: str, error: type[Exception]) -> float:
     """``float(v)`` when it is finite and > 0; else ``error`` naming ``name`` and the value."""
     try:
@@ -344,10 +381,10 @@ class PoseEstimatorBase:
 
     def _set_options(self, pnp: Any, top_l: int | None, refine_boxes: int, min_confidence: float,
                      residual_scale_px: float = RESIDUAL_SCALE_PX, box_scale: float = 1.0,
-                     depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: int = 1) -> None:
+                     depth_calibration: Any = 1.0, candidates: Any = 1, crop_tta: Any = 1) -> None:
         """Check and keep the settings both pipelines take."""
         err = self.input_error
-        self.crop_tta = _crop_count(crop_tta, "crop_tta", err)
+        self.crop_tta, self.crop_tta_stability = check_crop_tta(crop_tta, err)
         self.candidate_spec = check_candidates(candidates, err)
         self.depth_calibration_default, self.depth_calibration_per_object = parse_depth_calibration(depth_calibration, err)
         self.box_scale = _positive_number(box_scale, "box_scale", err)
@@ -532,7 +569,7 @@ class PoseEstimatorBase:
         if n == 1:
             return self._keypoints(x, boxes, idx, obj_ids)
         kp2d, conf = self._keypoints(x, tta_boxes(boxes, n), np.tile(idx, n), list(obj_ids) * n)
-        return combine_tta(kp2d, conf, n)
+        return combine_tta(kp2d, conf, n, self.crop_tta_stability)
 
     def depth_factors(self, obj_ids) -> np.ndarray | None:
         """The ``depth_calibration`` factor of each of ``obj_ids`` (None when every factor is 1)."""

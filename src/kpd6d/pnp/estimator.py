@@ -45,8 +45,9 @@ from kpd6d.geometry import bbox_from_points, box_iou_xywh, check_box_inputs, che
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
-__all__ = ["CROP_TTA_JITTER", "DETECTOR_WEIGHT", "SAME_INSTANCE_IOU", "CandidateSpec", "PoseEstimatorBase", "best_candidates", "build_pnp", "candidate_options",
-           "candidates_record", "check_candidates", "check_crop_tta", "combine_tta", "crop_tta_record", "parse_depth_calibration", "scale_boxes",
+__all__ = ["CROP_TTA_JITTER", "DETECTOR_WEIGHT", "SAME_INSTANCE_IOU", "CandidateSpec", "PoseEstimatorBase",
+           "best_candidates", "build_pnp", "candidate_options", "candidates_record", "check_candidates",
+           "check_crop_tta", "combine_tta", "crop_tta_record", "parse_depth_calibration", "scale_boxes",
            "top_candidates", "tta_boxes"]
 
 

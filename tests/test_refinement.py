@@ -198,3 +198,27 @@ def test_contour_jacobian_matches_finite_differences_of_the_pose_step():
     # a finite step: rotation about the centre leaves the centre where it is
     R2, t2 = apply_pose_step(R, t, centre, np.array([0.1, -0.2, 0.3, 0.0, 0.0, 0.0]))
     np.testing.assert_allclose(R2 @ np.array([5.0, -3.0, 2.0]) + t2, centre, atol=1e-9)
+
+
+@pytest.mark.parametrize("fg_margin,bg_margin", [(0, 0), (1, 2), (2, 0), (0, 3), (2, 3)])
+def test_histogram_margins_leave_the_bands_beside_the_edge_out(fg_margin, bg_margin):
+    """A square silhouette; a 2-px band of one colour just inside its edge and a 2-px band of another just
+    outside: each band's colour counts for its side unless that side's margin leaves the band out."""
+    ref = RegionRefiner(config=RegionRefineConfig(fg_margin=fg_margin, bg_margin=bg_margin))
+    H = W = 120
+    sil = np.zeros((60, 60), np.uint8)
+    sil[10:50, 10:50] = 1
+    A = np.array([[1.0, 0.0, 30.0], [0.0, 1.0, 30.0]])  # viewport px -> image px: the square is image [40, 80)
+    img = np.zeros((H, W, 3), np.uint8)
+    img[:] = (200, 200, 200)                   # background
+    img[38:82, 38:82] = (0, 0, 200)            # outer band: image px 38-39 and 80-81 ...
+    img[40:80, 40:80] = (200, 0, 0)            # ... inner band 40-41 and 78-79
+    img[42:78, 42:78] = (0, 200, 0)            # object
+    pf, sil_img = ref._posterior(img, sil, A, diameter_px=40.0)
+    assert sil_img[40:80, 40:80].all() and not sil_img[39, 50] and not sil_img[80, 50]
+    inner, outer, obj = pf[41, 60], pf[38, 60], pf[60, 60]
+    assert obj > 0.99 and pf[5, 5] < 0.01
+    assert (inner > 0.99) if fg_margin < 2 else (inner == pytest.approx(0.5, abs=1e-3))  # seen by neither histogram: 0.5
+    assert (outer < 0.01) if bg_margin < 2 else (outer == pytest.approx(0.5, abs=1e-3))
+    with pytest.raises(ValueError, match="fg_margin"):
+        RegionRefineConfig(fg_margin=-1)

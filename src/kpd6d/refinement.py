@@ -44,7 +44,9 @@ class RegionRefineConfig:
     ``scales``: one Gauss-Newton step per entry; each is the line's half-length as a fraction of the
     object's projected diameter (coarse to fine). ``line_steps``: samples on each side of the contour
     (``L``); the spacing is ``scale * diameter_px / L``, at least ``min_step``. ``num_lines``: contour
-    points per iteration. ``hist_bins``: bins per colour channel. ``amplitude`` / ``slope``: the
+    points per iteration. ``hist_bins``: bins per colour channel. ``fg_margin`` / ``bg_margin``: image px
+    next to the silhouette's edge left out of the foreground (inside) / background (outside) histogram,
+    where a blurred image mixes the two colours. ``amplitude`` / ``slope``: the
     smoothed step ``h_f(x) = 1/2 - amplitude * tanh(x / (2 slope))`` (x in line steps, outward
     positive). ``prior_rotation`` (rad) / ``prior_translation`` (mm): standard deviations of a zero-mean
     prior on each step (keeps weakly observed directions still). ``min_lines``: fewer informative
@@ -59,6 +61,8 @@ class RegionRefineConfig:
     min_step: float = 1.0
     num_lines: int = 200
     hist_bins: int = 16
+    fg_margin: int = 1  # px inside the silhouette's edge left out of the foreground histogram
+    bg_margin: int = 2  # px outside it left out of the background histogram
     amplitude: float = 0.43
     slope: float = 0.5
     prior_rotation: float = 0.02
@@ -73,6 +77,9 @@ class RegionRefineConfig:
         object.__setattr__(self, "scales", tuple(float(v) for v in self.scales))
         if not self.scales or any(not (s > 0) for s in self.scales):
             raise ValueError(f"region refinement: scales must be positive fractions of the projected diameter, got {self.scales}")
+        for name in ("fg_margin", "bg_margin"):
+            if int(getattr(self, name)) < 0 or int(getattr(self, name)) != getattr(self, name):
+                raise ValueError(f"region refinement: {name} must be a whole number of px >= 0, got {getattr(self, name)}")
         for name in ("line_steps", "num_lines", "hist_bins", "min_lines", "viewport"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"region refinement: {name} must be >= 1, got {getattr(self, name)}")
@@ -248,11 +255,11 @@ class RegionRefiner:
         sil = cv2.warpAffine(mask * 255, A, (W, H), flags=cv2.INTER_LINEAR) > 127
         ring = max(3, round(self.config.ring * diameter_px))
         k3 = np.ones((3, 3), np.uint8)
-        fg = cv2.erode(sil.astype(np.uint8), k3, iterations=1) > 0
+        fg = cv2.erode(sil.astype(np.uint8), k3, iterations=self.config.fg_margin) > 0 if self.config.fg_margin else sil.copy()
         if hidden is not None:
             fg &= ~(cv2.warpAffine(hidden.astype(np.uint8) * 255, A, (W, H), flags=cv2.INTER_NEAREST) > 127)
         grown = cv2.dilate(sil.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ring + 1,) * 2)) > 0
-        near = cv2.dilate(sil.astype(np.uint8), k3, iterations=2) > 0
+        near = cv2.dilate(sil.astype(np.uint8), k3, iterations=self.config.bg_margin) > 0 if self.config.bg_margin else sil
         bg = grown & ~near
         b = self.config.hist_bins
         shift = 8 - int(np.log2(b))

@@ -106,7 +106,7 @@ def _fraction_range(v, name: str) -> tuple[float, float]:
 def paste_occluders(images: torch.Tensor, p: float, size: tuple[float, float] = (0.15, 0.35),
                     offset: tuple[float, float] = (0.2, 0.5), generator: torch.Generator | None = None) -> torch.Tensor:
     """Each crop of ``images`` (B, 3, S, S), with probability ``p``, gets an occluder cut from another crop
-    of the batch (a random permutation without fixed points): an ellipse with semi-axes ``size`` x S
+    of the batch (the batch shifted cyclically by a random step, so never the crop itself): an ellipse with semi-axes ``size`` x S
     (each drawn in that range) and a random orientation, cut around the other crop's centre (where its
     object is) and pasted, by a pure translation, at ``offset`` x S (drawn in that range, random
     direction) from this crop's centre, so it covers part of this crop's object. Hard edges, as an
@@ -114,7 +114,7 @@ def paste_occluders(images: torch.Tensor, p: float, size: tuple[float, float] = 
     B, _, H, W = images.shape
     if B < 2 or p <= 0:
         return images
-    dev, dt = images.device, images.dtype
+    dev = images.device
 
     def rand(*shape):
         return torch.rand(*shape, generator=generator).to(dev)
@@ -137,4 +137,4 @@ def paste_occluders(images: torch.Tensor, p: float, size: tuple[float, float] = 
     sy = (ys - dy.view(B, 1, 1)).clamp(0, H - 1).long().expand(B, H, W)  # source pixel of each destination
     sx = (xs - dx.view(B, 1, 1)).clamp(0, W - 1).long().expand(B, H, W)
     src = images[other.to(dev)].flatten(2).gather(2, (sy * W + sx).flatten(1).unsqueeze(1).expand(B, 3, H * W))
-    return torch.where(inside.unsqueeze(1), src.view(B, 3, H, W).to(dt), images)
+    return torch.where(inside.unsqueeze(1), src.view(B, 3, H, W), images)

@@ -78,8 +78,10 @@ class RegionRefineConfig:
         if not self.scales or any(not (s > 0) for s in self.scales):
             raise ValueError(f"region refinement: scales must be positive fractions of the projected diameter, got {self.scales}")
         for name in ("fg_margin", "bg_margin"):
-            if int(getattr(self, name)) < 0 or int(getattr(self, name)) != getattr(self, name):
-                raise ValueError(f"region refinement: {name} must be a whole number of px >= 0, got {getattr(self, name)}")
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int | float) or v < 0 or int(v) != v:
+                raise ValueError(f"region refinement: {name} must be a whole number of px >= 0, got {v!r}")
+            object.__setattr__(self, name, int(v))
         for name in ("line_steps", "num_lines", "hist_bins", "min_lines", "viewport"):
             if int(getattr(self, name)) < 1:
                 raise ValueError(f"region refinement: {name} must be >= 1, got {getattr(self, name)}")
@@ -255,11 +257,11 @@ class RegionRefiner:
         sil = cv2.warpAffine(mask * 255, A, (W, H), flags=cv2.INTER_LINEAR) > 127
         ring = max(3, round(self.config.ring * diameter_px))
         k3 = np.ones((3, 3), np.uint8)
-        fg = cv2.erode(sil.astype(np.uint8), k3, iterations=self.config.fg_margin) > 0 if self.config.fg_margin else sil.copy()
+        fg = cv2.erode(sil.astype(np.uint8), k3, iterations=self.config.fg_margin) > 0  # 0 iterations: a copy
         if hidden is not None:
             fg &= ~(cv2.warpAffine(hidden.astype(np.uint8) * 255, A, (W, H), flags=cv2.INTER_NEAREST) > 127)
         grown = cv2.dilate(sil.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ring + 1,) * 2)) > 0
-        near = cv2.dilate(sil.astype(np.uint8), k3, iterations=self.config.bg_margin) > 0 if self.config.bg_margin else sil
+        near = cv2.dilate(sil.astype(np.uint8), k3, iterations=self.config.bg_margin) > 0
         bg = grown & ~near
         b = self.config.hist_bins
         shift = 8 - int(np.log2(b))

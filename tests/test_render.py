@@ -197,3 +197,45 @@ def test_pass_stats_count_the_passes_each_call_draws(renderer, objs):
     counts = {kind: n for kind, (n, _) in renderer.pass_stats.items()}
     assert counts == {"colour": 4, "segmentation": 6}
     assert all(secs > 0 for _, secs in renderer.pass_stats.values())
+
+
+def test_smooth_models_shade_object_scans_smoothly_and_leave_bare_meshes_flat():
+    """``smooth_models=True``: an ObjectModel's mesh (a coarse sphere, 80 facets, uniform colour, one
+    directional light) is shaded with interpolated normals — the same silhouette and depth as flat
+    shading, but no steps between facets (neighbouring pixels differ little, many grey levels instead of
+    one per visible facet); a bare trimesh of the same sphere stays flat; ``forget`` drops both cache
+    entries of a mesh."""
+    import trimesh
+
+    from kpd6d.objects import ObjectModel
+    from kpd6d.render import Light, Lighting
+
+    sphere = trimesh.creation.icosphere(subdivisions=1, radius=60.0)
+    sphere.visual.vertex_colors = np.tile(np.array([200, 200, 200, 255], np.uint8), (len(sphere.vertices), 1))
+    model = ObjectModel(obj_id=1, mesh=sphere)
+    light = Lighting(ambient=(0.0, 0.0, 0.0), lights=[Light((0.3, 0.4, 1.0), (1.0, 1.0, 1.0), 3.0)])
+    R, t = np.eye(3), np.array([0.0, 0.0, 500.0])
+    flat_r = Renderer(160, 120, LINEMOD_K * np.array([[0.25], [0.25], [1.0]]), antialias=False)
+    smooth_r = Renderer(160, 120, LINEMOD_K * np.array([[0.25], [0.25], [1.0]]), antialias=False, smooth_models=True)
+    try:
+        flat, smooth = (r.render([(model, R, t)], lighting=light) for r in (flat_r, smooth_r))
+        assert np.array_equal(flat.masks_visib[0], smooth.masks_visib[0])
+        np.testing.assert_allclose(flat.depth, smooth.depth, atol=1e-3)
+        inner = cv2.erode(flat.masks_visib[0].astype(np.uint8), np.ones((5, 5), np.uint8)) > 0
+        assert inner.sum() > 300
+
+        def steps(rgb):  # largest grey-level jumps between horizontal neighbours inside the sphere
+            g = rgb[..., 1].astype(float)
+            both = inner[:, 1:] & inner[:, :-1]
+            return np.percentile(np.abs(np.diff(g, axis=1))[both], 99)
+
+        assert steps(flat.rgb) >= 2 * max(steps(smooth.rgb), 1.0)  # (measured: 35 against 11)
+        assert len(np.unique(smooth.rgb[inner][:, 1])) > 2 * len(np.unique(flat.rgb[inner][:, 1]))
+        bare = smooth_r.render([(sphere, R, t)], lighting=light)  # not an ObjectModel: flat
+        assert np.array_equal(bare.rgb, flat.rgb)
+        assert {(id(sphere), False), (id(sphere), True)} <= set(smooth_r._cache)
+        smooth_r.forget(sphere)
+        assert not {(id(sphere), False), (id(sphere), True)} & set(smooth_r._cache)
+    finally:
+        flat_r.close()
+        smooth_r.close()

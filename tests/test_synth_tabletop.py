@@ -520,6 +520,89 @@ def test_indoor_lighting_is_dimmer_on_average_and_tinted():
     assert all(x.direction[1] > 0 for li in indoor for x in li.lights)  # from above (OpenCV y down)
 
 
+def test_contrast_lighting_is_dim_ambient_one_strong_key_light_and_glossy_half_the_time():
+    from kpd6d.render import Lighting
+
+    rng = np.random.default_rng(0)
+    lit = [Lighting.random_contrast(rng) for _ in range(300)]
+    indoor = [Lighting.random_indoor(rng) for _ in range(300)]
+    for li in lit:
+        assert max(li.ambient) <= 0.35 * 1.2 + 1e-9 and 1 <= len(li.lights) <= 2
+        assert 2.0 <= li.lights[0].intensity <= 5.0 and all(x.intensity <= 1.0 for x in li.lights[1:])
+        assert all(x.direction[1] > 0 and x.direction[2] > 0 for x in li.lights)  # down onto the table, into the scene
+        np.testing.assert_allclose([np.linalg.norm(x.direction) for x in li.lights], 1.0)
+        assert li.specular == 0.0 or 0.35 <= li.specular <= 0.7
+    # the key light outweighs the ambient far more than indoor lighting's strongest light does
+    ratio = np.median([li.lights[0].intensity / np.mean(li.ambient) for li in lit])
+    assert ratio > 3 * np.median([max(x.intensity for x in li.lights) / np.mean(li.ambient) for li in indoor])
+    glossy = np.mean([li.specular > 0 for li in lit])
+    assert 0.4 < glossy < 0.6
+    assert all(Lighting.random_contrast(rng, gloss_prob=0.0).specular == 0.0 for _ in range(20))
+    a, b = (Lighting.random_contrast(np.random.default_rng(5)) for _ in range(2))
+    assert a == b
+
+
+def test_contrast_lighting_replaces_the_style_on_its_share_of_images(models_dir, monkeypatch):
+    """contrast_lighting=p: that share of the images is lit by Lighting.random_contrast instead of the style's
+    lighting (each image deterministic for its seed); at 0 it is never drawn. The options are checked and
+    left out of the recorded settings while at their defaults (earlier datasets resume)."""
+    from kpd6d.render import Lighting
+
+    calls = []
+    orig = Lighting.random_contrast.__func__
+
+    def spy(cls, rng, *a, **kw):
+        calls.append(1)
+        return orig(cls, rng, *a, **kw)
+
+    monkeypatch.setattr(Lighting, "random_contrast", classmethod(spy))
+    comp = _composer(models_dir, objects_per_image=(1, 1), distractors=(0, 0), visib_fract_range=(0.0, 1.0),
+                     lighting="indoor", contrast_lighting=0.5)
+    n = 16
+    for i in range(n):
+        comp.compose(np.random.default_rng([9, i]))
+    assert 4 <= len(calls) <= n - 4
+    a, b = (comp.compose(np.random.default_rng([9, 2])) for _ in range(2))
+    assert np.array_equal(a.rgb, b.rgb)
+    calls.clear()
+    off = _composer(models_dir, objects_per_image=(1, 1), distractors=(0, 0), visib_fract_range=(0.0, 1.0),
+                    lighting="indoor")
+    for i in range(4):
+        off.compose(np.random.default_rng([9, i]))
+    assert calls == []
+    with pytest.raises(ValueError, match=r"contrast_lighting must be a number in \[0, 1\], got 1.5"):
+        SynthConfig.from_options({"contrast_lighting": 1.5})
+    with pytest.raises(ValueError, match="smooth_objects must be true or false, got 'yes'"):
+        SynthConfig.from_options({"smooth_objects": "yes"})
+    d = SynthConfig.from_options({}).to_dict()
+    assert "contrast_lighting" not in d and "smooth_objects" not in d
+    d = SynthConfig.from_options({"contrast_lighting": 0.5, "smooth_objects": True}).to_dict()
+    assert d["contrast_lighting"] == 0.5 and d["smooth_objects"] is True
+
+
+def test_smooth_objects_change_only_the_colours(tmp_path, models_dir):
+    """smooth_objects shades the objects differently and changes nothing else: same poses, boxes, masks and
+    visible fractions for the same seed (the option draws no random numbers)."""
+    roots = {}
+    for smooth in (False, True):
+        roots[smooth] = generate_dataset(tmp_path / str(smooth), models_dir=models_dir, num_images=3, seed=4,
+                                         progress=False, **{**TT, "objects_per_image": (2, 2), "distractors": (1, 1),
+                                                            "contrast_lighting": 1.0, "smooth_objects": smooth})
+    a, b = (BopDataset(roots[s], "train") for s in (False, True))
+    assert len(a) == len(b) == 3
+    differ = 0
+    for i in range(3):
+        x, y = a[i], b[i]
+        assert [(g.obj_id, g.visib_fract) for g in x.instances] == [(g.obj_id, g.visib_fract) for g in y.instances]
+        for g, h in zip(x.instances, y.instances):
+            np.testing.assert_allclose(g.R, h.R)
+            np.testing.assert_allclose(g.t, h.t)
+            assert np.array_equal(g.bbox_visib, h.bbox_visib)
+            assert np.array_equal(x.load_mask_visib(g.gt_index), y.load_mask_visib(h.gt_index))
+        differ += int(not np.array_equal(x.load_rgb(), y.load_rgb()))
+    assert differ == 3
+
+
 def test_shadow_pose_flattens_along_the_light_onto_the_table():
     """Independent check: each flattened point is where the line through the posed point along the
     light direction meets the table plane (solved per point); grazing / upward light gives None."""

@@ -38,6 +38,12 @@ from kpd6d.geometry import LINEMOD_IMAGE_SIZE, LINEMOD_K, cv_pose_to_gl_model_vi
 __all__ = ["Light", "Lighting", "RenderResult", "Renderer", "linear_vertex_colors"]
 
 
+def _tint(rng: np.random.Generator) -> np.ndarray:
+    """A random light colour between roughly 2700 K (warm) and 6500 K (cool), as RGB gains."""
+    w = rng.uniform(-1.0, 1.0)
+    return np.clip(np.array([1.0 + 0.12 * w, 1.0, 1.0 - 0.15 * w]) * rng.uniform(0.9, 1.0, 3), 0.0, 1.2)
+
+
 @dataclass
 class Light:
     """A directional light, ``direction`` in the OpenCV camera frame (towards where it shines)."""
@@ -71,18 +77,34 @@ class Lighting:
         colours already hold their albedo under light): ambient 0.2-0.9 with a colour temperature
         tint, 1-3 directional lights of intensity 0.3-3.5, each tinted warm or cool, mostly from above
         the camera's side of the scene; optional specular sheen."""
-        def tint():  # roughly 2700 K (warm) .. 6500 K (cool) as RGB gains
-            w = rng.uniform(-1.0, 1.0)
-            return np.clip(np.array([1.0 + 0.12 * w, 1.0, 1.0 - 0.15 * w]) * rng.uniform(0.9, 1.0, 3), 0.0, 1.2)
-
-        amb = rng.uniform(0.2, 0.9) * tint()
+        amb = rng.uniform(0.2, 0.9) * _tint(rng)
         lights = []
         for _ in range(int(rng.integers(1, 4))):
             d = rng.normal(size=3)
             d[2] = abs(d[2]) + 0.3
             d[1] = abs(d[1]) * 0.5 + 0.2  # OpenCV y points down: light mostly from above
-            lights.append(Light(tuple(d / np.linalg.norm(d)), tuple(float(c) for c in tint()), float(rng.uniform(0.3, 3.5))))
+            lights.append(Light(tuple(d / np.linalg.norm(d)), tuple(float(c) for c in _tint(rng)), float(rng.uniform(0.3, 3.5))))
         spec = float(rng.uniform(0.1, 0.5)) if rng.random() < specular_prob else 0.0
+        return cls(tuple(float(a) for a in amb), lights, spec)
+
+    @classmethod
+    def random_contrast(cls, rng: np.random.Generator, gloss_prob: float = 0.5) -> Lighting:
+        """High-contrast lighting: a dim tinted ambient (0.05-0.35), one strong key light (intensity 2-5)
+        from above the camera's side of the scene and 0-1 weak fill lights (0.2-1.0), so that the objects
+        show strong shading (a lamp or a window beside a table, not the even light of :meth:`random_indoor`);
+        with probability ``gloss_prob`` glossy surfaces (roughness 0.1-0.45: specular 0.35-0.7) whose
+        highlights are visible."""
+        def direction(up: float):
+            d = rng.normal(size=3)
+            d[2] = abs(d[2]) + 0.2
+            d[1] = abs(d[1]) + up  # OpenCV y points down: the light shines down onto the table
+            return tuple(float(v) for v in d / np.linalg.norm(d))
+
+        amb = rng.uniform(0.05, 0.35) * _tint(rng)
+        lights = [Light(direction(0.3), tuple(float(c) for c in _tint(rng)), float(rng.uniform(2.0, 5.0)))]
+        for _ in range(int(rng.integers(0, 2))):
+            lights.append(Light(direction(0.0), tuple(float(c) for c in _tint(rng)), float(rng.uniform(0.2, 1.0))))
+        spec = float(rng.uniform(0.35, 0.7)) if rng.random() < gloss_prob else 0.0
         return cls(tuple(float(a) for a in amb), lights, spec)
 
 
@@ -139,7 +161,10 @@ class Renderer:
     """Renders meshes at OpenCV poses with intrinsics ``K`` into (width, height) images.
 
     One OpenGL context per instance (and per process: create it after forking). Meshes are
-    converted to pyrender once and cached by identity. ``antialias=False`` renders into a
+    converted to pyrender once and cached by identity. ``smooth_models=True`` shades the meshes of
+    :class:`~kpd6d.objects.ObjectModel` instances (scans) with interpolated vertex normals instead of
+    flat faces (highlights on a glossy scan then spread smoothly instead of sparkling facet by facet);
+    bare trimesh meshes (distractors, the table) stay flat. ``antialias=False`` renders into a
     single-sampled framebuffer instead of pyrender's 4x multisampled one (aliased colour edges;
     about 2.5x faster colour passes and cheaper depth / segmentation passes on llvmpipe). Several
     renderers may be open at once; closing one leaves the others working.
@@ -149,13 +174,14 @@ class Renderer:
 
     def __init__(self, width: int = LINEMOD_IMAGE_SIZE[0], height: int = LINEMOD_IMAGE_SIZE[1],
                  K: np.ndarray = LINEMOD_K, znear: float = 10.0, zfar: float = 20000.0,
-                 antialias: bool = True) -> None:
+                 antialias: bool = True, smooth_models: bool = False) -> None:
         import pyrender
 
         self.width, self.height = int(width), int(height)
         self.K = np.asarray(K, dtype=np.float64)
         self.znear, self.zfar = znear, zfar
         self.antialias = bool(antialias)
+        self.smooth_models = bool(smooth_models)
         self._pyrender = pyrender
         try:
             self._renderer = pyrender.OffscreenRenderer(self.width, self.height)
@@ -164,10 +190,10 @@ class Renderer:
                 f"cannot create a headless OpenGL context (PYOPENGL_PLATFORM={os.environ.get('PYOPENGL_PLATFORM')}): "
                 f"{exc}. On Debian/Ubuntu install libegl1 and libgl1-mesa-dri (Mesa's EGL) or an NVIDIA driver."
             ) from exc
-        # id(trimesh) -> (pyrender mesh, trimesh (kept alive so the id stays unique), base roughness
+        # (id(trimesh), smooth) -> (pyrender mesh, trimesh (kept alive so the id stays unique), base roughness
         # per primitive). Cached meshes stay uploaded to the GL context (see ``render``).
         Renderer._open += 1
-        self._cache: dict[int, tuple] = {}
+        self._cache: dict[tuple[int, bool], tuple] = {}
         #: GL passes drawn so far, by kind ("colour", "segmentation"): (count, seconds incl. read-back)
         self.pass_stats: dict[str, tuple[int, float]] = {}
         if not self.antialias:
@@ -252,7 +278,12 @@ class Renderer:
             fx=K[0, 0], fy=K[1, 1], cx=K[0, 2] + 0.5, cy=K[1, 2] + 0.5, znear=self.znear, zfar=self.zfar
         )
 
-    def _pymesh(self, mesh, specular: float):
+    def forget(self, mesh) -> None:
+        """Drop ``mesh`` from the cache (a one-image mesh): its GL buffers are released on the next render."""
+        for smooth in (False, True):
+            self._cache.pop((id(mesh), smooth), None)
+
+    def _pymesh(self, mesh, specular: float, smooth: bool = False):
         """The cached pyrender mesh of ``mesh`` with its shininess set for ``specular``.
 
         pyrender's own material is kept (it carries the vertex colours / texture; passing a material
@@ -260,16 +291,17 @@ class Renderer:
         re-upload): ``roughness = max(0.05, base - specular)`` (pyrender's base is 0.8). Vertex and
         face colours are converted to linear values first (:func:`linear_vertex_colors`).
         """
-        entry = self._cache.get(id(mesh))
+        key = (id(mesh), bool(smooth))
+        entry = self._cache.get(key)
         if entry is None:
-            pm = self._pyrender.Mesh.from_trimesh(mesh, smooth=False)
+            pm = self._pyrender.Mesh.from_trimesh(mesh, smooth=bool(smooth))
             for prim in pm.primitives:
                 if prim.color_0 is not None:  # vertex / face colours: sRGB in, linear for the shader
                     prim.color_0 = linear_vertex_colors(prim.color_0)
             base = [getattr(p.material, "roughnessFactor", None) for p in pm.primitives]
             if len(self._cache) >= 256:
                 self._cache.clear()  # unused meshes then leave the GL context on the next render
-            entry = self._cache[id(mesh)] = (pm, mesh, base)
+            entry = self._cache[key] = (pm, mesh, base)
         pm, _, base = entry
         for prim, r0 in zip(pm.primitives, base):
             if r0 is not None:
@@ -329,7 +361,8 @@ class Renderer:
         nodes = []
         for obj, R, t in instances:
             mesh = getattr(obj, "mesh", obj)
-            node = pyrender.Node(mesh=self._pymesh(mesh, lighting.specular), matrix=cv_pose_to_gl_model_view(R, t))
+            smooth = self.smooth_models and mesh is not obj  # an ObjectModel's mesh (a scan), not a bare trimesh
+            node = pyrender.Node(mesh=self._pymesh(mesh, lighting.specular, smooth), matrix=cv_pose_to_gl_model_view(R, t))
             scene.add_node(node)
             nodes.append(node)
         if depth_only:

@@ -29,7 +29,7 @@ LIGHTING_STYLES = ("random", "indoor", "mixed", "fixed")
 #: options added after datasets were made without them: left out of ``to_dict`` while at their
 #: defaults, so that those datasets resume with the settings they were made with
 _LATER_FIELDS = ("palette", "distractor_refresh", "table_shadow_prob", "distractor_object_colors", "printed_matter",
-                 "object_detail")
+                 "object_detail", "contrast_lighting", "smooth_objects")
 
 
 def default_K(width: int, height: int) -> np.ndarray:
@@ -103,6 +103,9 @@ class SynthConfig:
     # appearance
     lighting: str = "random"  # "random" (Lighting.random per image), "indoor" (Lighting.random_indoor), "mixed" (either, half and half) or "fixed"
     specular_prob: float = 0.3
+    contrast_lighting: float = 0.0  # chance per image that Lighting.random_contrast replaces the style's lighting: a dim
+    #                                 ambient, one strong key light, glossy surfaces half of the time (strong shading, highlights)
+    smooth_objects: bool = False  # shade the target objects' meshes with interpolated vertex normals (not flat facets)
     backgrounds_dir: str | None = None  # folder of images; None: procedural backgrounds
     palette: str = "uniform"  # colours of the procedural content: "uniform" RGB or "natural" (kpd6d.synth.palette)
     printed_matter: float = 0.0  # printed sheets (markers, text, tables, pictures) on this share of the procedural
@@ -179,8 +182,11 @@ class SynthConfig:
         self.distractor_refresh = to_int(self.distractor_refresh, "distractor_refresh")
         if self.distractor_refresh < 0:
             raise ValueError(f"distractor_refresh must be >= 0 (0: one pool), got {self.distractor_refresh!r}")
-        for name in ("distractor_object_colors", "printed_matter", "object_detail"):
+        for name in ("distractor_object_colors", "printed_matter", "object_detail", "contrast_lighting"):
             setattr(self, name, to_fraction(getattr(self, name), name))
+        if not isinstance(self.smooth_objects, (bool, np.bool_)):
+            raise ValueError(f"smooth_objects must be true or false, got {self.smooth_objects!r}")
+        self.smooth_objects = bool(self.smooth_objects)
         if self.rgb_format not in ("png", "jpg"):
             raise ValueError(f"rgb_format must be 'png' or 'jpg', got {self.rgb_format!r}")
         if to_int(self.scene_size, "scene_size") < 1:

@@ -164,7 +164,7 @@ def _init_worker(spec: dict) -> None:
         from kpd6d.symmetry import handler_for_model
 
         handlers = [handler_for_model(m) for m in models]
-    renderer = Renderer(cfg.width, cfg.height, cfg.camera_K(), antialias=cfg.antialias)
+    renderer = Renderer(cfg.width, cfg.height, cfg.camera_K(), antialias=cfg.antialias, smooth_models=cfg.smooth_objects)
     sources = _color_sources(models, cfg)
     pool = _distractors(spec["seed"], cfg, 0, sources)
     backgrounds = make_background_source(cfg.backgrounds_dir, cfg.palette, cfg.printed_matter)

@@ -531,6 +531,8 @@ class SceneComposer:
             lighting = Lighting.random_indoor(rng, specular_prob=cfg.specular_prob)
         else:
             lighting = Lighting()
+        if cfg.contrast_lighting > 0 and rng.random() < cfg.contrast_lighting:  # (no draw when off: datasets resume)
+            lighting = Lighting.random_contrast(rng)
         background = self.backgrounds.sample(rng, self.W, self.H)
         table = self._sample_table(rng, chosen) if cfg.layout == "tabletop" else None
         best = None
@@ -605,6 +607,6 @@ class SceneComposer:
     def _forget_mesh(self, mesh) -> None:
         """Drop a one-image mesh (the table) from the renderer's cache; its GL buffers and texture are
         then released on the next render instead of accumulating."""
-        cache = getattr(self.renderer, "_cache", None)
-        if isinstance(cache, dict):
-            cache.pop(id(mesh), None)
+        forget = getattr(self.renderer, "forget", None)
+        if forget is not None:
+            forget(mesh)

@@ -44,6 +44,11 @@ def _tint(rng: np.random.Generator) -> np.ndarray:
     return np.clip(np.array([1.0 + 0.12 * w, 1.0, 1.0 - 0.15 * w]) * rng.uniform(0.9, 1.0, 3), 0.0, 1.2)
 
 
+def _light_colour(rng: np.random.Generator) -> tuple[float, float, float]:
+    """:func:`_tint` as a light's colour."""
+    return tuple(float(c) for c in _tint(rng))
+
+
 @dataclass
 class Light:
     """A directional light, ``direction`` in the OpenCV camera frame (towards where it shines)."""
@@ -83,7 +88,7 @@ class Lighting:
             d = rng.normal(size=3)
             d[2] = abs(d[2]) + 0.3
             d[1] = abs(d[1]) * 0.5 + 0.2  # OpenCV y points down: light mostly from above
-            lights.append(Light(tuple(d / np.linalg.norm(d)), tuple(float(c) for c in _tint(rng)), float(rng.uniform(0.3, 3.5))))
+            lights.append(Light(tuple(d / np.linalg.norm(d)), _light_colour(rng), float(rng.uniform(0.3, 3.5))))
         spec = float(rng.uniform(0.1, 0.5)) if rng.random() < specular_prob else 0.0
         return cls(tuple(float(a) for a in amb), lights, spec)
 
@@ -101,9 +106,9 @@ class Lighting:
             return tuple(float(v) for v in d / np.linalg.norm(d))
 
         amb = rng.uniform(0.05, 0.35) * _tint(rng)
-        lights = [Light(direction(0.3), tuple(float(c) for c in _tint(rng)), float(rng.uniform(2.0, 5.0)))]
+        lights = [Light(direction(0.3), _light_colour(rng), float(rng.uniform(2.0, 5.0)))]
         for _ in range(int(rng.integers(0, 2))):
-            lights.append(Light(direction(0.0), tuple(float(c) for c in _tint(rng)), float(rng.uniform(0.2, 1.0))))
+            lights.append(Light(direction(0.0), _light_colour(rng), float(rng.uniform(0.2, 1.0))))
         spec = float(rng.uniform(0.35, 0.7)) if rng.random() < gloss_prob else 0.0
         return cls(tuple(float(a) for a in amb), lights, spec)
 
@@ -291,10 +296,11 @@ class Renderer:
         re-upload): ``roughness = max(0.05, base - specular)`` (pyrender's base is 0.8). Vertex and
         face colours are converted to linear values first (:func:`linear_vertex_colors`).
         """
-        key = (id(mesh), bool(smooth))
+        smooth = bool(smooth)
+        key = (id(mesh), smooth)
         entry = self._cache.get(key)
         if entry is None:
-            pm = self._pyrender.Mesh.from_trimesh(mesh, smooth=bool(smooth))
+            pm = self._pyrender.Mesh.from_trimesh(mesh, smooth=smooth)
             for prim in pm.primitives:
                 if prim.color_0 is not None:  # vertex / face colours: sRGB in, linear for the shader
                     prim.color_0 = linear_vertex_colors(prim.color_0)

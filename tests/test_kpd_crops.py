@@ -195,3 +195,23 @@ def test_negative_crops_avoid_their_object_and_have_empty_targets(lmo_dir, lmo_m
     assert 0.25 * len(mixed) <= n_neg <= 0.75 * len(mixed)
     with pytest.raises(ValueError, match="negative_fraction must be in"):
         KPDCropDataset(lmo_dir, negative_fraction=1.0, **common)
+
+
+def test_symmetry_boundary_option(lmo_dir, lmo_model_by_id):
+    from kpd6d.symmetry import handler_for_model
+
+    glue = lmo_model_by_id[11]
+    kps = {11: np.vstack([glue.bbox_corners, glue.bbox_min + glue.bbox_size / 2])}
+    common = dict(split="test", obj_ids=[11], keypoints=kps, models=[glue], input_size=64, out_stride=4, sigma=2.0,
+                  min_visib_fract=0.3, return_heatmaps=False)
+    ds = KPDCropDataset(lmo_dir, symmetry_boundary="least_motion", **common)
+    hl, hx = handler_for_model(glue, boundary="least_motion"), handler_for_model(glue)
+    moved = 0
+    for i in range(len(ds)):
+        inst = ds.ds.frames[ds.items[i][0]].instances[ds.items[i][1]]
+        R, t = np.asarray(inst.R, dtype=np.float64), np.asarray(inst.t, dtype=np.float64)
+        np.testing.assert_allclose(ds[i]["R"].numpy(), hl.canonicalize(R, t)[0], atol=1e-9)
+        moved += not np.allclose(hl.canonicalize(R, t)[0], hx.canonicalize(R, t)[0])
+    assert len(ds) and moved  # the glue's labels differ from the model_x range's for some views
+    with pytest.raises(ValueError, match="symmetry_boundary 'widest' unknown; known: model_x, least_motion"):
+        KPDCropDataset(lmo_dir, symmetry_boundary="widest", **common)

@@ -227,3 +227,65 @@ def test_handler_for_model_choices():
         quarter.append(S)
     h4 = handler_for_model(ObjectModel(obj_id=2, mesh=None, symmetries_discrete=quarter, _diameter=100.0))
     assert isinstance(h4, RotationalSymmetry) and h4.order == 4
+
+
+def _flat_bottle():
+    """A flat 2-fold object: a box thin in x, broad in y, tall in z, turned half-way about z."""
+    import trimesh
+
+    S = np.eye(4)
+    S[:3, :3] = rotation_about_axis([0, 0, 1], math.pi)
+    return ObjectModel(obj_id=11, mesh=trimesh.creation.box(extents=(30.0, 80.0, 170.0)), symmetries_discrete=[S])
+
+
+def _boundary_pixel_motion(model, direction, turn):
+    """Mean pixel distance between the model's surface points and their turned copies, seen by a LineMod
+    camera 600 mm away along ``direction`` (elevation 0): what tells the two labels apart at that view."""
+    from kpd6d.geometry import project_points
+
+    d = np.asarray(direction, float) / np.linalg.norm(direction)
+    R, t = pose_from_view(math.atan2(d[1], d[0]), 0.0, 600.0)
+    pts = model.sample_points(500, seed=3)
+    a = project_points(pts, LINEMOD_K, R, t)
+    b = project_points(pts @ turn[:3, :3].T + turn[:3, 3], LINEMOD_K, R, t)
+    return float(np.linalg.norm(a - b, axis=1).mean())
+
+
+def test_least_motion_reference_flat_object():
+    from kpd6d.symmetry import least_motion_reference
+
+    m = _flat_bottle()
+    ref = least_motion_reference(m.sample_points(2000, seed=0), [0, 0, 1])
+    assert abs(ref[1]) > 0.999 and abs(ref[2]) < 1e-9  # along its broad side (y), normal to the axis
+    # independent check with a perspective camera: the turn moves the object least, seen from there
+    turn = m.symmetries_discrete[0]
+    seen = {deg: _boundary_pixel_motion(m, [math.cos(math.radians(deg)), math.sin(math.radians(deg)), 0], turn)
+            for deg in range(0, 180, 15)}
+    assert min(seen, key=seen.get) == 90
+    assert _boundary_pixel_motion(m, ref, turn) < 0.6 * _boundary_pixel_motion(m, [1, 0, 0], turn)
+    with pytest.raises(ValueError, match="finite points"):
+        least_motion_reference(np.zeros((0, 3)), [0, 0, 1])
+
+
+def test_handler_boundary_choice_moves_the_canonical_range():
+    m = _flat_bottle()
+    hx = handler_for_model(m)
+    hl = handler_for_model(m, boundary="least_motion")
+    assert hx.reference is None and np.allclose(np.abs(hl.reference), [0, 1, 0], atol=0.02)
+    assert "reference" in repr(hl)
+    R, t = _random_poses(200, seed=4)
+    Rc, tc = hl.canonicalize(R, t)
+    # independent azimuth from +y (the new reference) about z: the camera centre's angle, in [0, π)
+    eye = -np.einsum("nji,nj->ni", Rc, tc)
+    az = np.mod(np.arctan2(-eye[:, 0] * np.sign(hl.reference[1]), eye[:, 1] * np.sign(hl.reference[1])), 2 * math.pi)
+    assert ((az >= -1e-9) & (az < math.pi + 1e-9)).all()
+    # equivalent to the model_x canonical pose (one turn apart or equal), both unique per class
+    Rx, tx = hx.canonicalize(R, t)
+    turned = np.einsum("nij,jk->nik", Rx, m.symmetries_discrete[0][:3, :3])
+    same = np.isclose(Rc, Rx, atol=1e-9).all(axis=(1, 2))
+    assert (same | np.isclose(Rc, turned, atol=1e-9).all(axis=(1, 2))).all()
+    assert 0.3 < same.mean() < 0.7  # the two ranges overlap by half
+    with pytest.raises(ValueError, match=r"symmetry boundary 'widest' unknown; known: model_x, least_motion"):
+        handler_for_model(m, boundary="widest")
+    with pytest.raises(ValueError, match="must not be parallel"):
+        RotationalSymmetry(order=2, reference=[0, 0, 2])

@@ -44,15 +44,17 @@ BOX_SOURCES = ("visib", "obj", "detections")
 VISIBILITY_MODES = ("auto", "depth", "mask", "crop")
 
 
-def canonicalizer_for(model) -> Callable[[np.ndarray, np.ndarray], tuple[np.ndarray, np.ndarray]]:
-    """``(R, t) -> (R, t)`` canonicalising the pose of a symmetric model (identity otherwise)."""
+def canonicalizer_for(model, boundary: str = "model_x") -> Callable[[np.ndarray, np.ndarray],
+                                                                    tuple[np.ndarray, np.ndarray]]:
+    """``(R, t) -> (R, t)`` canonicalising the pose of a symmetric model (identity otherwise); ``boundary``:
+    where a rotational symmetry's canonical range starts (:func:`kpd6d.symmetry.handler_for_model`)."""
     if not model.is_symmetric:
         return lambda R, t: (R, t)
     try:
         from kpd6d.symmetry import handler_for_model
     except ImportError as exc:  # pragma: no cover - kpd6d.symmetry is part of the library
         raise ImportError(f"object {model.obj_id} is symmetric but kpd6d.symmetry is unavailable: {exc}") from exc
-    return handler_for_model(model).canonicalize
+    return handler_for_model(model, boundary=boundary).canonicalize
 
 
 def load_detection_boxes(path: str | os.PathLike) -> dict[tuple[int, int], list[tuple[int, np.ndarray, float]]]:
@@ -99,7 +101,7 @@ class KPDCropDataset(Dataset):
                  box_augment: Callable | None = None, min_visib_fract: float = 0.1,
                  visibility: str = "auto", return_heatmaps: bool = True, max_instances: int | None = None,
                  models: Sequence | None = None, image_cache_mb: float = 0.0, codec: Any = None,
-                 negative_fraction: float = 0.0) -> None:
+                 negative_fraction: float = 0.0, symmetry_boundary: str = "model_x") -> None:
         from kpd6d.data import BopDataset
 
         if box_source not in BOX_SOURCES:
@@ -124,7 +126,11 @@ class KPDCropDataset(Dataset):
         self.num_keypoints = next(iter(ks.values()))
         models = list(models) if models is not None else self.ds.load_models(self.obj_ids)
         self.models = {m.obj_id: m for m in models if m.obj_id in self.obj_ids}
-        self._canon = {o: canonicalizer_for(m) for o, m in self.models.items()}
+        from kpd6d.symmetry.handlers import BOUNDARIES
+
+        if symmetry_boundary not in BOUNDARIES:
+            raise ValueError(f"symmetry_boundary {symmetry_boundary!r} unknown; known: {', '.join(BOUNDARIES)}")
+        self._canon = {o: canonicalizer_for(m, symmetry_boundary) for o, m in self.models.items()}
         self.box_source = box_source
         self.box_augment = box_augment
         negative_fraction = float(negative_fraction)

@@ -28,7 +28,8 @@ def build_datasets(cfg, root: Path):
 
     k = cfg.stage.kpd
     common = dict(obj_ids=to_plain(k.obj_ids), codec=to_plain(k.codec), box_source=k.box_source,
-                  detections=k.detections, visibility=k.visibility, min_visib_fract=float(k.min_visib_fract))
+                  detections=k.detections, visibility=k.visibility, min_visib_fract=float(k.min_visib_fract),
+                  symmetry_boundary=str(k.get("symmetry_boundary", "model_x")))
     keypoints = None
     if k.get("keypoints"):  # a keypoint file other than the dataset's (e.g. another designator)
         from kpd6d.keypoints import load_keypoints

@@ -12,6 +12,7 @@ from kpd6d.symmetry.handlers import (
     RotationalSymmetry,
     axis_angle_offset,
     handler_for_model,
+    least_motion_reference,
     reference_direction,
 )
 
@@ -23,5 +24,6 @@ __all__ = [
     "RotationalSymmetry",
     "axis_angle_offset",
     "handler_for_model",
+    "least_motion_reference",
     "reference_direction",
 ]

@@ -7,8 +7,13 @@ second pose sits at ``S^-1(eye)`` where ``eye = -R^T t`` is the camera centre of
 * ``none``: no symmetry; ``canonicalize`` is the identity.
 * ``rotational``: α-rotational symmetry (α = 2π / order) about an axis through ``offset``;
   ``canonicalize`` returns the equivalent pose whose camera azimuth about the axis lies in [0, α).
-  Azimuth is measured from the reference direction :func:`reference_direction` (the model's x axis
-  projected onto the plane normal to the axis, or y when x is parallel to the axis).
+  Azimuth is measured from a reference direction normal to the axis: by default
+  :func:`reference_direction` (the model's x axis projected onto the plane normal to the axis, or y
+  when x is parallel to the axis); with ``boundary="least_motion"`` (:func:`handler_for_model`)
+  :func:`least_motion_reference`, the direction from which the object's surface moves least in the
+  image under its symmetry rotation. Views at the range's boundary are labelled by one equivalent
+  pose on one side and the other on the other: there the least motion means the least difference
+  between the two labels a network has to tell apart.
   ``in_canonical_range(R, t)`` tells whether a pose already lies there (for restricting pose sampling).
 * ``discrete``: any finite group of symmetries (several axes); ``canonicalize`` picks the
   equivalent pose whose viewing direction is closest to a fixed reference direction.
@@ -38,8 +43,12 @@ __all__ = [
     "RotationalSymmetry",
     "axis_angle_offset",
     "handler_for_model",
+    "least_motion_reference",
     "reference_direction",
 ]
+
+#: where :func:`handler_for_model` puts a rotational symmetry's canonical-range boundary
+BOUNDARIES = ("model_x", "least_motion")
 
 
 def _unit(v) -> np.ndarray:
@@ -58,6 +67,31 @@ def reference_direction(axis) -> np.ndarray:
         if np.linalg.norm(p) > 0.3:
             return p / np.linalg.norm(p)
     raise AssertionError("unreachable")  # pragma: no cover
+
+
+def least_motion_reference(points, axis, offset=(0.0, 0.0, 0.0), angle: float = math.pi,
+                           samples: int = 720) -> np.ndarray:
+    """Unit direction normal to ``axis`` from which ``points`` (N, 3; model frame) move least in the image
+    when the object turns by ``angle`` about the axis through ``offset``.
+
+    The motion seen from direction ``d`` is each point's displacement with its component along ``d``
+    removed (an orthographic view); the returned ``d`` minimises its mean length over ``samples``
+    azimuths. For a flat two-fold object (a bottle turned half-way about its height) it is the
+    direction along its broad side: seen from there the turn only swaps its thin edges.
+    """
+    a = _unit(axis)
+    P = np.asarray(points, dtype=np.float64).reshape(-1, 3)
+    if len(P) == 0 or not np.isfinite(P).all():
+        raise ValueError(f"least_motion_reference needs finite points, got {len(P)} points")
+    o = np.asarray(offset, dtype=np.float64).reshape(3)
+    D = (P - o) @ (rotation_about_axis(a, float(angle)).T - np.eye(3))  # displacement of each point
+    e1 = reference_direction(a)
+    e2 = np.cross(a, e1)
+    theta = np.linspace(0.0, 2 * math.pi, int(samples), endpoint=False)
+    d = np.cos(theta)[:, None] * e1 + np.sin(theta)[:, None] * e2  # (S, 3)
+    along = D @ d.T  # (N, S)
+    seen = np.sqrt(np.clip((D * D).sum(1)[:, None] - along ** 2, 0.0, None)).mean(0)
+    return d[int(np.argmin(seen))]
 
 
 def _nearest_rotation(M) -> np.ndarray:
@@ -146,9 +180,10 @@ class NoSymmetry:
 class _AxisMixin:
     axis: np.ndarray
     offset: np.ndarray
+    reference: np.ndarray | None = None  # azimuth 0 (normal to the axis); None: reference_direction(axis)
 
     def _frame(self):
-        e1 = reference_direction(self.axis)
+        e1 = reference_direction(self.axis) if self.reference is None else self.reference
         return e1, np.cross(self.axis, e1)
 
     def azimuth(self, R, t):
@@ -160,12 +195,16 @@ class _AxisMixin:
 
 
 class RotationalSymmetry(_AxisMixin):
-    """α-rotational symmetry, α = 2π / ``order``, about ``axis`` through ``offset`` (model frame, mm)."""
+    """α-rotational symmetry, α = 2π / ``order``, about ``axis`` through ``offset`` (model frame, mm).
+
+    ``reference``: the direction of azimuth 0 (projected onto the plane normal to the axis); None:
+    :func:`reference_direction`.
+    """
 
     name = "rotational"
 
     def __init__(self, order: int = 2, axis: Sequence[float] = (0.0, 0.0, 1.0),
-                 offset: Sequence[float] = (0.0, 0.0, 0.0)) -> None:
+                 offset: Sequence[float] = (0.0, 0.0, 0.0), reference: Sequence[float] | None = None) -> None:
         if int(order) != order or order < 2:
             raise ValueError(f"rotational symmetry order must be an integer >= 2, got {order!r}")
         self.order = int(order)
@@ -173,6 +212,13 @@ class RotationalSymmetry(_AxisMixin):
         o = np.asarray(offset, dtype=np.float64).reshape(3)
         self.offset = o - (o @ self.axis) * self.axis
         self.alpha = 2 * math.pi / self.order
+        if reference is not None:
+            r = np.asarray(reference, dtype=np.float64).reshape(3)
+            r = r - (r @ self.axis) * self.axis
+            if not np.isfinite(r).all() or np.linalg.norm(r) < 1e-6:
+                raise ValueError(f"rotational symmetry: reference {np.asarray(reference).tolist()} must not be parallel "
+                                 f"to the axis {self.axis.round(4).tolist()}")
+            self.reference = r / np.linalg.norm(r)
 
     def transforms(self, model=None) -> list[np.ndarray]:
         return [np.eye(4)] + [_rotation_transform(self.axis, j * self.alpha, self.offset) for j in range(1, self.order)]
@@ -193,7 +239,9 @@ class RotationalSymmetry(_AxisMixin):
         return 0.0, self.alpha
 
     def __repr__(self) -> str:
-        return f"RotationalSymmetry(order={self.order}, axis={self.axis.round(4).tolist()}, offset={self.offset.round(3).tolist()})"
+        ref = "" if self.reference is None else f", reference={self.reference.round(4).tolist()}"
+        return (f"RotationalSymmetry(order={self.order}, axis={self.axis.round(4).tolist()}, "
+                f"offset={self.offset.round(3).tolist()}{ref})")
 
 
 class DiscreteSymmetry:
@@ -282,8 +330,9 @@ def _build_none() -> NoSymmetry:
 
 @SYMMETRIES.register("rotational")
 def _build_rotational(order: int = 2, axis: Sequence[float] = (0.0, 0.0, 1.0),
-                      offset: Sequence[float] = (0.0, 0.0, 0.0)) -> RotationalSymmetry:
-    return RotationalSymmetry(order=order, axis=axis, offset=offset)
+                      offset: Sequence[float] = (0.0, 0.0, 0.0), reference: Sequence[float] | None = None
+                      ) -> RotationalSymmetry:
+    return RotationalSymmetry(order=order, axis=axis, offset=offset, reference=reference)
 
 
 @SYMMETRIES.register("discrete")
@@ -297,15 +346,20 @@ def _build_continuous(axis: Sequence[float] = (0.0, 0.0, 1.0), offset: Sequence[
     return ContinuousSymmetry(axis=axis, offset=offset, steps=steps)
 
 
-def handler_for_model(model, *, axis_tol_deg: float = 5.0, offset_tol: float | None = None, steps: int = 36):
+def handler_for_model(model, *, axis_tol_deg: float = 5.0, offset_tol: float | None = None, steps: int = 36,
+                      boundary: str = "model_x"):
     """The symmetry handler for ``model`` from its ``symmetries_discrete`` / ``symmetries_continuous``.
 
     * none listed -> ``none``
     * continuous -> ``continuous`` (the first axis; discrete ones about other axes become flips)
     * discrete rotations all about one axis line (within ``axis_tol_deg`` and ``offset_tol`` mm,
-      default 2% of the diameter) -> ``rotational`` of order round(2π / smallest angle)
+      default 2% of the diameter) -> ``rotational`` of order round(2π / smallest angle), its canonical
+      range starting at ``boundary``: ``model_x`` (:func:`reference_direction`) or ``least_motion``
+      (:func:`least_motion_reference` of 2,000 points sampled on the model's surface, or its vertices)
     * discrete ones about several axes -> ``discrete`` over the listed transforms
     """
+    if boundary not in BOUNDARIES:
+        raise ValueError(f"symmetry boundary {boundary!r} unknown; known: {', '.join(BOUNDARIES)}")
     disc = [np.asarray(S, dtype=np.float64).reshape(4, 4) for S in getattr(model, "symmetries_discrete", [])]
     cont = list(getattr(model, "symmetries_continuous", []))
     if offset_tol is None:
@@ -326,5 +380,10 @@ def handler_for_model(model, *, axis_tol_deg: float = 5.0, offset_tol: float | N
         smallest = min(min(ang, 2 * math.pi - ang) for _, ang, _ in aao)
         order = round(2 * math.pi / smallest)
         offset = np.mean([o for _, _, o in aao], axis=0)
-        return RotationalSymmetry(order=max(order, 2), axis=a0, offset=offset)
+        order = max(order, 2)
+        reference = None
+        if boundary == "least_motion":
+            pts = model.sample_points(2000, seed=0) if hasattr(model, "sample_points") else model.vertices
+            reference = least_motion_reference(pts, a0, offset, 2 * math.pi / order)
+        return RotationalSymmetry(order=order, axis=a0, offset=offset, reference=reference)
     return DiscreteSymmetry(disc)

@@ -284,6 +284,7 @@ def test_handler_boundary_choice_moves_the_canonical_range():
     turned = np.einsum("nij,jk->nik", Rx, m.symmetries_discrete[0][:3, :3])
     same = np.isclose(Rc, Rx, atol=1e-9).all(axis=(1, 2))
     assert (same | np.isclose(Rc, turned, atol=1e-9).all(axis=(1, 2))).all()
+    assert np.allclose(tc, tx, atol=1e-9)  # a turn about an axis through the origin keeps the translation
     assert 0.3 < same.mean() < 0.7  # the two ranges overlap by half
     with pytest.raises(ValueError, match=r"symmetry boundary 'widest' unknown; known: model_x, least_motion"):
         handler_for_model(m, boundary="widest")

@@ -213,5 +213,5 @@ def test_symmetry_boundary_option(lmo_dir, lmo_model_by_id):
         np.testing.assert_allclose(ds[i]["R"].numpy(), hl.canonicalize(R, t)[0], atol=1e-9)
         moved += not np.allclose(hl.canonicalize(R, t)[0], hx.canonicalize(R, t)[0])
     assert len(ds) and moved  # the glue's labels differ from the model_x range's for some views
-    with pytest.raises(ValueError, match="symmetry_boundary 'widest' unknown; known: model_x, least_motion"):
+    with pytest.raises(ValueError, match="symmetry boundary 'widest' unknown; known: model_x, least_motion"):
         KPDCropDataset(lmo_dir, symmetry_boundary="widest", **common)

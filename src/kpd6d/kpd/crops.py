@@ -126,10 +126,9 @@ class KPDCropDataset(Dataset):
         self.num_keypoints = next(iter(ks.values()))
         models = list(models) if models is not None else self.ds.load_models(self.obj_ids)
         self.models = {m.obj_id: m for m in models if m.obj_id in self.obj_ids}
-        from kpd6d.symmetry.handlers import BOUNDARIES
+        from kpd6d.symmetry.handlers import check_boundary
 
-        if symmetry_boundary not in BOUNDARIES:
-            raise ValueError(f"symmetry_boundary {symmetry_boundary!r} unknown; known: {', '.join(BOUNDARIES)}")
+        check_boundary(symmetry_boundary)  # also for datasets without a symmetric object
         self._canon = {o: canonicalizer_for(m, symmetry_boundary) for o, m in self.models.items()}
         self.box_source = box_source
         self.box_augment = box_augment

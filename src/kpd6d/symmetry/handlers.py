@@ -51,6 +51,13 @@ __all__ = [
 BOUNDARIES = ("model_x", "least_motion")
 
 
+def check_boundary(boundary: str) -> str:
+    """``boundary`` if it is one of :data:`BOUNDARIES`, else a ValueError listing them."""
+    if boundary not in BOUNDARIES:
+        raise ValueError(f"symmetry boundary {boundary!r} unknown; known: {', '.join(BOUNDARIES)}")
+    return boundary
+
+
 def _unit(v) -> np.ndarray:
     v = np.asarray(v, dtype=np.float64).reshape(3)
     n = np.linalg.norm(v)
@@ -358,8 +365,7 @@ def handler_for_model(model, *, axis_tol_deg: float = 5.0, offset_tol: float | N
       (:func:`least_motion_reference` of 2,000 points sampled on the model's surface, or its vertices)
     * discrete ones about several axes -> ``discrete`` over the listed transforms
     """
-    if boundary not in BOUNDARIES:
-        raise ValueError(f"symmetry boundary {boundary!r} unknown; known: {', '.join(BOUNDARIES)}")
+    check_boundary(boundary)
     disc = [np.asarray(S, dtype=np.float64).reshape(4, 4) for S in getattr(model, "symmetries_discrete", [])]
     cont = list(getattr(model, "symmetries_continuous", []))
     if offset_tol is None:

@@ -66,11 +66,17 @@ def _unit(v) -> np.ndarray:
     return v / n
 
 
+def _normal_part(v, axis: np.ndarray) -> np.ndarray:
+    """The component of the 3-vector ``v`` normal to the unit vector ``axis``."""
+    v = np.asarray(v, dtype=np.float64).reshape(3)
+    return v - (v @ axis) * axis
+
+
 def reference_direction(axis) -> np.ndarray:
     """Unit vector normal to ``axis`` from which azimuths are measured (model x, or y if x ∥ axis)."""
     a = _unit(axis)
     for ref in (np.array([1.0, 0.0, 0.0]), np.array([0.0, 1.0, 0.0])):
-        p = ref - (ref @ a) * a
+        p = _normal_part(ref, a)
         if np.linalg.norm(p) > 0.3:
             return p / np.linalg.norm(p)
     raise AssertionError("unreachable")  # pragma: no cover
@@ -135,7 +141,7 @@ def axis_angle_offset(S) -> tuple[np.ndarray, float, np.ndarray]:
         if angle < math.pi - 1e-3:
             angle = 2 * math.pi - angle
     offset = np.linalg.lstsq(np.eye(3) - R, t, rcond=None)[0]
-    offset = offset - (offset @ axis) * axis
+    offset = _normal_part(offset, axis)
     return axis, angle, offset
 
 
@@ -216,12 +222,10 @@ class RotationalSymmetry(_AxisMixin):
             raise ValueError(f"rotational symmetry order must be an integer >= 2, got {order!r}")
         self.order = int(order)
         self.axis = _unit(axis)
-        o = np.asarray(offset, dtype=np.float64).reshape(3)
-        self.offset = o - (o @ self.axis) * self.axis
+        self.offset = _normal_part(offset, self.axis)
         self.alpha = 2 * math.pi / self.order
         if reference is not None:
-            r = np.asarray(reference, dtype=np.float64).reshape(3)
-            r = r - (r @ self.axis) * self.axis
+            r = _normal_part(reference, self.axis)
             if not np.isfinite(r).all() or np.linalg.norm(r) < 1e-6:
                 raise ValueError(f"rotational symmetry: reference {np.asarray(reference).tolist()} must not be parallel "
                                  f"to the axis {self.axis.round(4).tolist()}")
@@ -291,8 +295,7 @@ class ContinuousSymmetry(_AxisMixin):
     def __init__(self, axis: Sequence[float] = (0.0, 0.0, 1.0), offset: Sequence[float] = (0.0, 0.0, 0.0),
                  steps: int = 36, flips: Sequence = ()) -> None:
         self.axis = _unit(axis)
-        o = np.asarray(offset, dtype=np.float64).reshape(3)
-        self.offset = o - (o @ self.axis) * self.axis
+        self.offset = _normal_part(offset, self.axis)
         if int(steps) < 2:
             raise ValueError(f"continuous symmetry: steps must be >= 2, got {steps!r}")
         self.steps = int(steps)
@@ -379,7 +382,7 @@ def handler_for_model(model, *, axis_tol_deg: float = 5.0, offset_tol: float | N
     a0, _, o0 = aao[0]
     same_axis = all(
         abs(float(a @ a0)) > math.cos(math.radians(axis_tol_deg))
-        and np.linalg.norm((o - o0) - ((o - o0) @ a0) * a0) < offset_tol
+        and np.linalg.norm(_normal_part(o - o0, a0)) < offset_tol
         for a, _, o in aao
     )
     if same_axis:

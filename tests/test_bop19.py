@@ -206,3 +206,58 @@ def test_cli_errors_are_clear(tmp_path, capsys):
     ok = write_bop_results(tmp_path / "ok.csv", [PoseResult(1, 1, 1, 1.0, *_pose())])
     assert score_main([str(ok), str(tmp_path / "nowhere")]) == 2
     assert "test_targets_bop19.json: file does not exist" in capsys.readouterr().err
+
+
+# ---------------------------------------------------------------------------------------------
+# error decomposition (oracle substitution)
+# ---------------------------------------------------------------------------------------------
+def test_substitute_takes_each_part_from_the_nearest_gt_instance(tmp_path):
+    from kpd6d.evaluation.bop19 import load_bop_gt
+    from kpd6d.evaluation.decompose import substitute
+
+    R1, R2 = rotation_about_axis([0, 0, 1], 0.3), rotation_about_axis([1, 0, 0], -0.4)
+    g = {1: [(1, R1, np.array([-150.0, 0, 1000]), 1.0), (1, R2, np.array([150.0, 20, 900]), 1.0)]}
+    root = _make_dataset(tmp_path / "ds", g, {(1, 1): 2})
+    gt = load_bop_gt(root)
+    t_e = np.array([160.0, 10, 990])  # nearest to the second instance
+    est = [PoseResult(1, 1, 1, 0.7, np.eye(3), t_e, 0.5), PoseResult(1, 1, 3, 0.2, np.eye(3), t_e)]  # obj 3: no GT
+    d, tr, ro = (substitute(est, gt, p) for p in ("depth", "translation", "rotation"))
+    assert d[0].t[2] == pytest.approx(900) and np.allclose(d[0].R, np.eye(3))
+    uv = lambda t: (LINEMOD_K @ t)[:2] / t[2]  # noqa: E731
+    assert np.allclose(uv(d[0].t), uv(t_e))  # moved along its own ray: the projected centre stays
+    assert np.allclose(tr[0].t, [150, 20, 900]) and np.allclose(tr[0].R, np.eye(3))
+    assert np.allclose(ro[0].R, R2) and np.allclose(ro[0].t, t_e)
+    assert (d[0].score, d[0].time) == (0.7, 0.5)
+    for s in (d, tr, ro):  # no GT instance of the object: copied unchanged
+        assert np.allclose(s[1].t, t_e) and np.allclose(s[1].R, np.eye(3))
+    assert np.allclose(est[0].t, t_e)  # the input is not modified
+    with pytest.raises(ValueError, match="known: depth, translation, rotation"):
+        substitute(est, gt, "scale")
+
+
+def test_error_decomposition_against_hand_substituted_scores(tmp_path, capsys):
+    from kpd6d.evaluation.decompose import error_decomposition
+
+    R2 = rotation_about_axis([0, 1, 0], 0.5)
+    t1, t2 = np.array([-100.0, 30, 1000]), np.array([120.0, -40, 900])
+    g = {1: [(1, np.eye(3), t1, 1.0), (2, R2, t2, 1.0)]}
+    root = _make_dataset(tmp_path / "ds", g, {(1, 1): 1, (1, 2): 1})
+    wrong_depth = PoseResult(1, 1, 1, 1.0, np.eye(3), t1 * 1.1)  # object 1: 100 mm too far, along its ray
+    wrong_rot = PoseResult(1, 1, 2, 1.0, rotation_about_axis([0, 1, 0], 0.9), t2 + np.array([3.0, 0, 0]))  # object 2: 23 deg off
+    exact1 = PoseResult(1, 1, 1, 1.0, np.eye(3), t1)
+    rot_fixed = PoseResult(1, 1, 2, 1.0, R2, t2 + np.array([3.0, 0, 0]))
+    trans_fixed = PoseResult(1, 1, 2, 1.0, wrong_rot.R, t2)
+    dec = error_decomposition([wrong_depth, wrong_rot], root)
+
+    def ar(results):
+        s = score_bop19(results, root)
+        return {"ar_mssd": s["ar_mssd"], "ar_mspd": s["ar_mspd"]}
+
+    assert dec == {"estimated": ar([wrong_depth, wrong_rot]), "depth": ar([exact1, wrong_rot]),
+                   "translation": ar([exact1, trans_fixed]), "rotation": ar([wrong_depth, rot_fixed])}
+    assert dec["depth"]["ar_mssd"] > dec["estimated"]["ar_mssd"] and dec["rotation"]["ar_mspd"] > dec["estimated"]["ar_mspd"]
+    # the same from the command line, in its JSON and its printed table
+    csv = write_bop_results(tmp_path / "r.csv", [wrong_depth, wrong_rot])
+    assert score_main([str(csv), str(root), "--decompose", "--json", str(tmp_path / "s.json")]) == 0
+    assert json.loads((tmp_path / "s.json").read_text())["decomposition"] == dec
+    assert f"rotation from the GT{' ' * 27}{100 * dec['rotation']['ar_mssd']:7.1f}" in capsys.readouterr().out

@@ -175,6 +175,10 @@ def test_undetected_and_failed_pnp_count_as_failures(tmp_path):
     assert m["failures"] == 4 and m["per_object"]["1"]["curves"]["proj2d"][-1] == 0.0
     # BOP19 does not count the hidden instance (visib_fract 0 < 0.1): 2 correct of 5 targets
     assert m["bop19"]["ar_mssd"] == pytest.approx(2 / 5) and m["bop19"]["n_targets"] == 5
+    # missing estimates stay failures whatever part of a pose comes from the GT; the exact ones stay exact
+    assert {k: v["ar_mssd"] for k, v in m["bop19"]["decomposition"].items()} == pytest.approx(
+        {"estimated": 2 / 5, "depth": 2 / 5, "translation": 2 / 5, "rotation": 2 / 5})
+    assert "| rotation from the GT | 40.0 | 40.0 |" in (tmp_path / "b" / "report.md").read_text()
 
 
 def test_resume_skips_done_frames(tmp_path):

@@ -91,6 +91,15 @@ def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] 
     if bop:
         lines.append(f"BOP19 (results.csv scored by kpd6d-score): AR_MSSD {_pct(bop.get('ar_mssd'))} %, "
                      f"AR_MSPD {_pct(bop.get('ar_mspd'))} %. VSD: {bop.get('vsd', 'skipped')}.")
+    dec = bop.get("decomposition")
+    if dec:
+        from kpd6d.evaluation.decompose import LABELS
+
+        lines += ["", "Where the score is lost (a diagnosis: the same estimates scored again with one part of each "
+                  "pose taken from the nearest GT instance; kpd6d.evaluation.decompose):", "",
+                  "| poses | AR_MSSD (%) | AR_MSPD (%) |", "|---|---:|---:|"]
+        lines += [f"| {LABELS.get(k, k)} | {_pct(v['ar_mssd'])} | {_pct(v['ar_mspd'])} |" for k, v in dec.items()]
+        lines.append("")
     fps = metrics.get("fps")
     if fps:
         lines.append(f"Speed: {fps:.2f} frames/s end to end on {info.get('device', '?')} "

@@ -33,7 +33,7 @@ import numpy as np
 
 from kpd6d.evaluation.errors import add_error, adds_error, keypoint_errors, proj2d_error, symmetry_transforms
 from kpd6d.evaluation.recall import add_s_accuracy, auc, proj2d_accuracy, recall_at
-from kpd6d.evaluation.results_io import PoseResult, write_bop_results
+from kpd6d.evaluation.results_io import PoseResult, read_bop_results, write_bop_results
 from kpd6d.io import atomic_write_image, atomic_write_json, atomic_write_text, read_json
 
 __all__ = ["ADD_THRESHOLDS", "PX_THRESHOLDS", "ShardMergeError", "compute_metrics", "eval_instances", "evaluate",
@@ -227,7 +227,8 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     predictions (a :class:`ShardMergeError` names an unfinished shard, other settings, a missing or
     duplicated frame) and write everything the single job writes.
     """
-    from kpd6d.evaluation.bop19 import score_bop19_file
+    from kpd6d.evaluation.bop19 import load_bop_gt, load_eval_models, score_bop19_file
+    from kpd6d.evaluation.decompose import error_decomposition
     from kpd6d.evaluation.report import plot_curves, write_report_md
     from kpd6d.visualize import draw_overlay
 
@@ -294,11 +295,15 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     atomic_write_json(targets_file, [{"scene_id": s, "im_id": i, "obj_id": o, "inst_count": c}
                                 for (s, i, o), c in sorted(tg.items())])
     try:
-        bop = score_bop19_file(out_dir / "results.csv", dataset.root, split=dataset.split,
-                               targets_filename=str(targets_file.resolve()))
+        where = dict(split=dataset.split, targets_filename=str(targets_file.resolve()))
+        known = dict(gt=load_bop_gt(dataset.root, **where), models=load_eval_models(dataset.root))
+        bop = score_bop19_file(out_dir / "results.csv", dataset.root, **where, **known)
+        bop["decomposition"] = error_decomposition(read_bop_results(out_dir / "results.csv"), dataset.root,
+                                                   **where, **known)
     except Exception as exc:  # scoring is a summary; never lose the metrics above over it
         bop = {"error": f"{type(exc).__name__}: {exc}"}
-    metrics["bop19"] = {k: bop[k] for k in ("ar_mssd", "ar_mspd", "vsd", "n_targets", "error") if k in bop}
+    metrics["bop19"] = {k: bop[k] for k in ("ar_mssd", "ar_mspd", "vsd", "n_targets", "decomposition", "error")
+                        if k in bop}
     for oid, o in (bop.get("per_object") or {}).items():
         if oid in metrics["per_object"]:
             metrics["per_object"][oid]["ar_mssd"] = o["ar_mssd"]

@@ -197,6 +197,48 @@ def test_negative_crops_avoid_their_object_and_have_empty_targets(lmo_dir, lmo_m
         KPDCropDataset(lmo_dir, negative_fraction=1.0, **common)
 
 
+def test_full_box_crops_cover_the_whole_projected_object(lmo_dir, lmo_model_by_id):
+    """full_box_p: a full-box item is cropped on the box of the whole object — checked against the model's
+    vertices projected independently (OpenCV) with the GT pose and clipped to the image — and holds the
+    keypoints a visible-box crop leaves out on occluded instances; the other items are the plain dataset's;
+    a share outside [0, 1] is refused."""
+    models = [lmo_model_by_id[1], lmo_model_by_id[5], lmo_model_by_id[6]]
+    kps = {m.obj_id: m.bbox_corners for m in models}
+    common = dict(split="test", obj_ids=[1, 5, 6], keypoints=kps, models=models, input_size=64, crop_scale=1.25,
+                  min_visib_fract=0.1)
+    plain = KPDCropDataset(lmo_dir, **common)
+    full = KPDCropDataset(lmo_dir, full_box_p=1.0, **common)
+    occluded = 0
+    for i in range(len(full)):
+        a, b = full[i], plain[i]
+        fi, ii = full.items[i]
+        frame, inst = full.ds.frames[fi], full.ds.frames[fi].instances[ii]
+        rvec, _ = cv2.Rodrigues(np.asarray(inst.R, dtype=np.float64))
+        m = full.models[inst.obj_id]
+        uv = cv2.projectPoints(m.vertices, rvec, np.asarray(inst.t, dtype=np.float64), frame.K, None)[0][:, 0]
+        lo, hi = np.clip(uv.min(0), 0, [640, 480]), np.clip(uv.max(0), 0, [640, 480])
+        np.testing.assert_allclose(a["box"].numpy(), np.r_[lo, hi - lo], atol=2.0)  # BOP boxes are whole px
+        torch.testing.assert_close(a["keypoints_image"], b["keypoints_image"])  # same instance, same pose
+        if inst.visib_fract < 0.7:
+            occluded += 1
+            inside = lambda it: ((it["keypoints"] >= 0) & (it["keypoints"] < 64)).all(1).sum()  # noqa: E731
+            assert inside(a) >= inside(b), i
+            assert a["box"][2:].prod() >= b["box"][2:].prod()
+    assert occluded >= 3
+    half = KPDCropDataset(lmo_dir, full_box_p=0.5, **common)
+    torch.manual_seed(0)
+    n_full = 0
+    for i in range(len(half)):
+        box = half[i]["box"]
+        is_full = torch.allclose(box, full[i]["box"])
+        is_plain = torch.allclose(box, plain[i]["box"])
+        assert is_full or is_plain, i
+        n_full += is_full and not is_plain
+    assert 0.2 * len(half) <= n_full <= 0.8 * len(half)
+    with pytest.raises(ValueError, match="full_box_p must be in"):
+        KPDCropDataset(lmo_dir, full_box_p=1.5, **common)
+
+
 def test_symmetry_boundary_option(lmo_dir, lmo_model_by_id):
     from kpd6d.symmetry import handler_for_model
 

@@ -16,6 +16,13 @@ clutter from true ones when candidates are verified (:mod:`kpd6d.pnp.estimator`)
 :func:`inference_crops` makes the same crops of a batch of image tensors on their device (kornia's
 ``warp_affine``), as the KPD's inference does.
 
+Full-box crops (``full_box_p`` p > 0, for training): an item is, with probability p, cropped on the
+instance's full box — the GT ``bbox_obj`` (the box of the whole projected object, occluded parts
+included) clipped to the image — instead of ``box_source``'s box, before box augmentation. That is the
+box the re-crop of ``refine_boxes`` cuts at inference (:mod:`kpd6d.pnp.estimator`: the object projected
+with the estimated pose, clipped to the image); on an occluded object it holds the hidden part's
+keypoints, which a crop of the visible box often leaves outside, where no heatmap can put them.
+
 Visibility (``visibility=``): ``crop`` — inside the crop; ``mask`` — also on the instance's visible
 mask (catches occlusion by other objects, not self-occlusion); ``depth`` — also not behind the scene
 depth at its pixel (catches self- and inter-object occlusion); ``auto`` — ``depth`` when the frame
@@ -101,7 +108,7 @@ class KPDCropDataset(Dataset):
                  box_augment: Callable | None = None, min_visib_fract: float = 0.1,
                  visibility: str = "auto", return_heatmaps: bool = True, max_instances: int | None = None,
                  models: Sequence | None = None, image_cache_mb: float = 0.0, codec: Any = None,
-                 negative_fraction: float = 0.0, symmetry_boundary: str = "model_x") -> None:
+                 negative_fraction: float = 0.0, symmetry_boundary: str = "model_x", full_box_p: float = 0.0) -> None:
         from kpd6d.data import BopDataset
 
         if box_source not in BOX_SOURCES:
@@ -136,6 +143,10 @@ class KPDCropDataset(Dataset):
         if not 0.0 <= negative_fraction < 1.0:
             raise ValueError(f"negative_fraction must be in [0, 1), got {negative_fraction}")
         self.negative_fraction = negative_fraction
+        full_box_p = float(full_box_p)
+        if not 0.0 <= full_box_p <= 1.0:
+            raise ValueError(f"full_box_p must be in [0, 1], got {full_box_p}")
+        self.full_box_p = full_box_p
         self.visibility = visibility
         self.return_heatmaps = return_heatmaps
         self.detections = load_detection_boxes(detections) if box_source == "detections" else None
@@ -189,15 +200,21 @@ class KPDCropDataset(Dataset):
                 self._cache_bytes += img.nbytes
         return img
 
-    def _box(self, frame, inst) -> np.ndarray:
+    def _box(self, frame, inst, full_hw: tuple[int, int] | None = None) -> np.ndarray:
+        """The instance's crop box: ``box_source``'s; with ``full_hw`` (the image's (H, W)) its full box clipped to
+        the image (its visible box when almost none of the full box is inside)."""
+        if full_hw is not None:
+            gt = inst.bbox_obj if inst.bbox_obj is not None else self._projected_box(frame, inst)
+            gt = np.asarray(gt, dtype=np.float64)
+            size = np.array([full_hw[1], full_hw[0]], dtype=np.float64)
+            lo, hi = np.clip(gt[:2], 0, size), np.clip(gt[:2] + gt[2:], 0, size)
+            if (hi - lo).min() >= 2:
+                return np.concatenate([lo, hi - lo])
         gt = inst.bbox_visib if self.box_source in ("visib", "detections") else inst.bbox_obj
         if gt is None:  # no scene_gt_info: the box of the projected model
-            from kpd6d.geometry import bbox_from_points
-
-            m = self.models[inst.obj_id]
-            gt = bbox_from_points(project_points(m.sample_points(500, seed=0), frame.K, inst.R, inst.t))
+            gt = self._projected_box(frame, inst)
         gt = np.asarray(gt, dtype=np.float64)
-        if self.box_source == "detections":
+        if self.box_source == "detections" and full_hw is None:
             cands = [d for d in self.detections.get((frame.scene_id, frame.im_id), []) if d[0] == inst.obj_id]
             if cands:
                 ious = box_iou_xywh(gt, np.stack([c[1] for c in cands]))
@@ -205,6 +222,13 @@ class KPDCropDataset(Dataset):
                 if ious[j] >= self.detection_iou:
                     return cands[j][1].copy()
         return gt
+
+    def _projected_box(self, frame, inst) -> np.ndarray:
+        """The box of the instance's model points projected with its GT pose (xywh, unclipped)."""
+        from kpd6d.geometry import bbox_from_points
+
+        m = self.models[inst.obj_id]
+        return bbox_from_points(project_points(m.sample_points(500, seed=0), frame.K, inst.R, inst.t))
 
     def _visibility(self, frame, inst, uv_img, z, in_crop) -> np.ndarray:
         vis = in_crop.copy()
@@ -253,13 +277,14 @@ class KPDCropDataset(Dataset):
         fi, ii = self.items[idx]
         frame = self.ds.frames[fi]
         inst = frame.instances[ii]
-        box = self._box(frame, inst)
         rng = None
-        if self.box_augment is not None or self.negative_fraction > 0:
+        if self.box_augment is not None or self.negative_fraction > 0 or self.full_box_p > 0:
             rng = np.random.default_rng(int(torch.randint(0, 2**31 - 1, ()).item()))
+        rgb = self._rgb(fi)
+        full = self.full_box_p > 0 and rng.random() < self.full_box_p
+        box = self._box(frame, inst, full_hw=rgb.shape[:2] if full else None)
         if self.box_augment is not None:
             box = self.box_augment(box, rng, obj_id=inst.obj_id)
-        rgb = self._rgb(fi)
         negative = False
         if self.negative_fraction > 0 and rng.random() < self.negative_fraction:
             neg_box = self._negative_box(frame, inst, np.asarray(box, dtype=np.float64), rgb.shape[:2], rng)

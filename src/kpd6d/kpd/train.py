@@ -38,6 +38,7 @@ def build_datasets(cfg, root: Path):
     train = KPDCropDataset(root, split=cfg.data.train_split, box_augment=build_box_augment(to_plain(k.box_augment)),
                            keypoints=keypoints, image_cache_mb=float(k.get("image_cache_mb", 0) or 0),
                            negative_fraction=float(k.get("negative_fraction", 0) or 0),
+                           full_box_p=float(k.get("full_box_p", 0) or 0),
                            return_heatmaps=not (k.augment and (k.augment.get("rotation_deg") or k.augment.get("translate")
                                                                 or k.augment.get("scale"))),
                            **common)

@@ -102,6 +102,60 @@ def test_evaluation_on_another_dataset_with_oracle_boxes_too(tmp_path):
     assert json.loads((run / "eval" / "metrics.json").read_text())["run"]["dataset"] == str(other)
 
 
+@pytest.mark.slow
+def test_yardsticks_evaluate_the_runs_val_split_and_a_generated_one(tmp_path):
+    """evaluate.yardsticks: the run's own val split and a split generated with the run's data options
+    updated by the yardstick's (here: fixed lighting, seed 7), each evaluated with the own detector and
+    with GT boxes into yardsticks/<name>/; the scores reach metrics.json; a rerun resumes them."""
+    from kpd6d.workflow import run_experiment
+
+    extra = ["evaluate.oracle=true", "+evaluate.yardsticks.val.split=val",
+             "+evaluate.yardsticks.shifted={num_images: 2, seed: 7, options: {lighting: fixed}}"]
+    run = tmp_path / "run"
+    m = run_experiment(_cfg(extra), run)
+    assert set(m["yardsticks"]) == {"val", "shifted"}
+    shifted = run / "yardsticks" / "shifted" / "data"
+    assert m["yardsticks"]["val"]["root"] == str(run / "data") and m["yardsticks"]["shifted"]["root"] == str(shifted)
+    assert len(list((shifted / "val" / "000000" / "rgb").iterdir())) == 2
+    info = json.loads((shifted / "dataset_info.json").read_text())["splits"]["val"]
+    assert info["seed"] == 7 and info["config"]["lighting"] == "fixed"
+    assert info["config"]["width"] == 160  # the run's own data options, updated by the yardstick's
+    assert json.loads((run / "data" / "dataset_info.json").read_text())["splits"]["val"]["config"]["lighting"] != "fixed"
+    for name, root in (("val", run / "data"), ("shifted", shifted)):
+        for ev, det in (("eval", str(run / "detector" / "detector.pt")), ("eval_oracle", "oracle")):
+            saved = json.loads((run / "yardsticks" / name / ev / "metrics.json").read_text())
+            assert saved["run"]["dataset"] == str(root) and saved["run"]["split"] == "val"
+            assert saved["run"]["detector"] == det
+            who = "own" if ev == "eval" else "oracle"
+            assert m["yardsticks"][name][who]["ar_mssd"] == saved["mean"]["ar_mssd"]
+    # the val yardstick is the val split itself: 2 images, one object each
+    assert json.loads((run / "yardsticks" / "val" / "eval_oracle" / "metrics.json").read_text())["mean"]["n"] == 2
+    assert set(json.loads((run / "metrics.json").read_text())["yardsticks"]) == {"val", "shifted"}
+    stamp = (shifted / "val" / "000000" / "scene_gt.json").stat().st_mtime_ns
+    assert run_experiment(_cfg(extra), run)["yardsticks"] == m["yardsticks"]  # resumed: same predictions
+    assert (shifted / "val" / "000000" / "scene_gt.json").stat().st_mtime_ns == stamp
+
+
+def test_yardstick_specs_are_checked(tmp_path):
+    """Bad yardstick specs stop with a message naming the key; a null spec switches one off."""
+    from kpd6d.config import ConfigError
+    from kpd6d.workflow import yardstick_splits
+
+    (tmp_path / "data" / "val").mkdir(parents=True)
+    root = tmp_path / "data"
+    cases = [("+evaluate.yardsticks.a={spit: val}", "unknown key\\(s\\) \\['spit'\\]; known: split, root"),
+             ("+evaluate.yardsticks.a={num_images: 2, split: val}", "either num_images"),
+             ("+evaluate.yardsticks.a={split: test}", "evaluate.yardsticks.a: split 'test' not found"),
+             ("+evaluate.yardsticks.a={seed: 3}", "seed and options need num_images"),
+             ("+evaluate.yardsticks.a={num_images: 0}", "num_images must be > 0"),
+             ("+evaluate.yardsticks.a=7", "must be a mapping")]
+    for override, message in cases:
+        with pytest.raises(ConfigError, match=message):
+            yardstick_splits(_cfg([override]), tmp_path, root)
+    assert yardstick_splits(_cfg(["+evaluate.yardsticks.a=null", "+evaluate.yardsticks.b.split=val"]), tmp_path,
+                            root) == {"b": (root, "val")}
+
+
 LMO_TINY = [
     "experiment=lmo", "objects.obj_ids=[1,5]", "designator.num_keypoints=8", "data.num_train=6", "data.num_val=2",
     "data.workers=1", "+data.options.width=160", "+data.options.height=120", "data.options.objects_per_image=[1,2]",
@@ -111,7 +165,7 @@ LMO_TINY = [
     "detector_stage.trainer.precision=32-true",
     "backbone@kpd_stage.backbone=tiny", "kpd_stage.kpd.codec.input_size=32", "kpd_stage.kpd.num_workers=0",
     "kpd_stage.kpd.batch_size=4", "kpd_stage.kpd.trainer.max_time=null", "kpd_stage.kpd.trainer.max_epochs=1",
-    "kpd_stage.kpd.scheduler=null",
+    "kpd_stage.kpd.scheduler=null", "evaluate.yardsticks.heldout_style.num_images=2",
 ]
 
 
@@ -143,6 +197,10 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
     assert full.data.options.photometric == {"exposure": [0.7, 2.5], "saturation": [0.8, 1.5]}
     assert full.kpd_stage.kpd.finetune.freeze_stages == 2 and not full.kpd_stage.kpd.finetune.freeze_bn
     assert full.evaluate.refiner.name == "region" and full.evaluate.refiner.prior_rotation == 0.02
+    # the synthetic yardsticks: the run's val split and the held-out-style split (appearance training never sees)
+    assert full.evaluate.yardsticks.val == {"split": "val"} and full.evaluate.yardsticks.heldout_style.seed == 7
+    shift = full.evaluate.yardsticks.heldout_style.options
+    assert shift.lighting != full.data.options.lighting and shift.palette != full.data.options.palette
 
     run = tmp_path / "run"
     m = run_experiment(cfg, run)
@@ -176,6 +234,14 @@ def test_lmo_recipe_composes_and_runs_end_to_end_on_tiny_sizes(tmp_path, lmo_dir
         assert json.loads((run / ev / "settings.json").read_text())["refiner"]["name"] == "region"
         assert "- refiner: `{'name': 'region'" in (run / ev / "report.md").read_text()
     assert "refiner" not in json.loads((run / "calibration" / "settings.json").read_text())
+    # the yardsticks, evaluated as the real frames are (refiner, depth calibration), with both box sources
+    assert set(m["yardsticks"]) == {"val", "heldout_style"}
+    held = json.loads((run / "yardsticks" / "heldout_style" / "data" / "dataset_info.json").read_text())["splits"]["val"]
+    assert held["config"]["lighting"] == "random" and held["config"]["layout"] == "tabletop"
+    for name in ("val", "heldout_style"):
+        for ev in ("eval", "eval_oracle"):
+            rec = json.loads((run / "yardsticks" / name / ev / "settings.json").read_text())
+            assert rec["refiner"]["name"] == "region" and rec["depth_calibration"] == str(cal)
 
 
 @pytest.mark.slow

@@ -9,7 +9,13 @@ Steps, each skipped when its output already exists (so an interrupted run resume
    ``kpd_networks=per_object`` one network per object in ``kpd/obj_XXXXXX/`` and the manifest
    ``kpd/networks.json``) unless ``kpd_ckpt`` is given;
 5. evaluate on the test split (``eval/``: metrics.json, results.csv, report.md, plots, overlays;
-   :func:`run_evaluation`, also the work of ``kpd6d-evaluate``).
+   :func:`run_evaluation`, also the work of ``kpd6d-evaluate``);
+6. evaluate on each synthetic yardstick of ``evaluate.yardsticks`` (``yardsticks/<name>/eval``, ``eval_oracle``;
+   :func:`yardstick_splits`): the run's own generated val split, or a split generated with other
+   appearance settings — the splits settings are chosen on when the test data are real frames.
+
+Evaluations resume frame by frame (their ``predictions.jsonl``) and refuse a folder whose predictions
+were made with other settings (:func:`kpd6d.evaluation.runner.evaluate`).
 
 The stage configs are the same nodes ``kpd6d-train`` uses (``detector_stage`` = conf/stage/detector.yaml,
 ``kpd_stage`` = conf/stage/kpd.yaml), so a setting means the same thing in both tools.
@@ -26,7 +32,7 @@ import numpy as np
 from kpd6d.config import cfg_float, cfg_int, to_int
 from kpd6d.io import to_plain
 
-__all__ = ["run_evaluation", "run_experiment"]
+__all__ = ["YARDSTICK_KEYS", "run_evaluation", "run_experiment", "yardstick_splits"]
 
 
 def _log(msg: str) -> None:
@@ -307,16 +313,77 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
     })
 
 
-def _evaluate(cfg, root: Path, det, kpd, out_dir: Path, depth_calibration=None) -> dict:
-    _log(f"evaluating on {root}/{cfg.evaluate.split} (detector: {det})")
+def _evaluate(cfg, root: Path, det, kpd, out_dir: Path, depth_calibration=None, split: str | None = None) -> dict:
+    """The run's evaluation of ``det`` + ``kpd`` on ``root``/``split`` (default ``evaluate.split``) into
+    ``out_dir``, with the detector's own AP unless ``det`` is the oracle (resumes frame by frame:
+    :func:`kpd6d.evaluation.runner.evaluate`)."""
+    split = cfg.evaluate.split if split is None else split
+    _log(f"evaluating on {root}/{split} (detector: {det})")
     over = {} if depth_calibration is None else {"depth_calibration": depth_calibration}
-    ecfg = _eval_cfg(cfg, root, cfg.evaluate.split, det, kpd, **over)
+    ecfg = _eval_cfg(cfg, root, split, det, kpd, **over)
     extra = None
     if str(det) != "oracle":  # the detector's own AP on the same frames, per object
-        _log(f"evaluating the detector on {root}/{cfg.evaluate.split}")
-        extra = {"detector": evaluate_detector_on(det, root, cfg.evaluate.split, to_plain(cfg.objects.obj_ids),
+        _log(f"evaluating the detector on {root}/{split}")
+        extra = {"detector": evaluate_detector_on(det, root, split, to_plain(cfg.objects.obj_ids),
                                                   cfg.evaluate.max_frames)}
     return run_evaluation(ecfg, out_dir, extra_metrics=extra)
+
+
+YARDSTICK_KEYS = ("split", "root", "num_images", "seed", "options")
+
+
+def yardstick_splits(cfg, run_dir: Path, root: Path) -> dict[str, tuple[Path, str]]:
+    """``evaluate.yardsticks`` (``{name: spec}``) as ``{name: (BOP root, split)}``, generating what is to be
+    generated (resumably). A spec is either ``{split: S}`` (a split of the run's data, e.g. its generated
+    ``val``; with ``root: R``, of the BOP dataset at R), or ``{num_images: n, seed: s, options: {...}}``: n
+    images generated into ``<run dir>/yardsticks/<name>/data/val`` with the run's ``data.options`` updated
+    by ``options`` (e.g. appearance settings its training data never use) and seed s."""
+    from omegaconf import OmegaConf
+
+    from kpd6d.config import ConfigError
+    from kpd6d.synth.prepare import generate_splits
+
+    specs = to_plain(cfg.evaluate.get("yardsticks")) or {}
+    if not isinstance(specs, dict):
+        raise ConfigError(f"evaluate.yardsticks must map names to specs, got {specs!r}")
+    out: dict[str, tuple[Path, str]] = {}
+    for name, spec in specs.items():
+        where = f"evaluate.yardsticks.{name}"
+        if spec is None:  # a yardstick switched off (evaluate.yardsticks.NAME=null)
+            continue
+        if not isinstance(spec, dict):
+            raise ConfigError(f"{where} must be a mapping ({', '.join(YARDSTICK_KEYS)}), got {spec!r}")
+        unknown = sorted(set(spec) - set(YARDSTICK_KEYS))
+        if unknown:
+            raise ConfigError(f"{where}: unknown key(s) {unknown}; known: {', '.join(YARDSTICK_KEYS)}")
+        generated = "num_images" in spec
+        if generated and ("split" in spec or "root" in spec):
+            raise ConfigError(f"{where}: either num_images (a generated split) or split / root (an existing one)")
+        if not generated:
+            if "seed" in spec or "options" in spec:
+                raise ConfigError(f"{where}: seed and options need num_images (a generated split)")
+            yroot = Path(spec["root"]) if spec.get("root") else root
+            split = str(spec.get("split") or "val")
+            if not (yroot / split).is_dir():
+                raise ConfigError(f"{where}: split {split!r} not found in {yroot}")
+            out[name] = (yroot, split)
+            continue
+        n = to_int(spec["num_images"], f"{where}.num_images")
+        if n <= 0:
+            raise ConfigError(f"{where}.num_images must be > 0, got {n}")
+        options = OmegaConf.to_container(OmegaConf.merge(OmegaConf.create(to_plain(cfg.data.options) or {}),
+                                                         OmegaConf.create(spec.get("options") or {})), resolve=True)
+        options.setdefault("designator", None)
+        yroot = Path(run_dir) / "yardsticks" / str(name) / "data"
+        generate_splits(yroot, [("val", n, to_int(spec.get("seed", 0), f"{where}.seed"))],
+                        models_dir=cfg.objects.models_dir, obj_ids=cfg.objects.obj_ids,
+                        workers=cfg_int(cfg, "data.workers"), progress=bool(cfg.progress), options=options, log=_log)
+        out[name] = (yroot, "val")
+    return out
+
+
+def _scores(mean: dict) -> dict:
+    return {k: mean[k] for k in ("ar_mssd", "ar_mspd", "add_s_01d", "proj2d_5px") if k in mean}
 
 
 def _auto_depth_calibration(cfg, root: Path, det, kpd, out_dir: Path) -> str:
@@ -376,10 +443,26 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
         cal = _auto_depth_calibration(cfg, root, det, kpd, run_dir / "calibration")
         timings["calibration_s"] = time.time() - t0
     metrics = _evaluate(cfg, eval_root, det, kpd, run_dir / "eval", cal)
-    if cfg.evaluate.get("oracle") and str(det) != "oracle":  # also with ground-truth boxes: the KPD alone
+    with_oracle = bool(cfg.evaluate.get("oracle")) and str(det) != "oracle"  # also with GT boxes: the KPD alone
+    if with_oracle:
         oracle = _evaluate(cfg, eval_root, "oracle", kpd, run_dir / "eval_oracle", cal)
         metrics["oracle_boxes"] = {"mean": oracle["mean"], "report": str(run_dir / "eval_oracle" / "report.md")}
     timings["evaluate_s"] = time.time() - t0
+    t0 = time.time()
+    yardsticks = {}
+    for name, (yroot, ysplit) in yardstick_splits(cfg, run_dir, root).items():
+        ydir = run_dir / "yardsticks" / name
+        entry = {"root": str(yroot), "split": ysplit,
+                 "own": _scores(_evaluate(cfg, yroot, det, kpd, ydir / "eval", cal, split=ysplit)["mean"])}
+        if with_oracle:
+            entry["oracle"] = _scores(_evaluate(cfg, yroot, "oracle", kpd, ydir / "eval_oracle", cal, split=ysplit)["mean"])
+        yardsticks[name] = entry
+        _log(f"yardstick {name}: " + "; ".join(
+            f"{who} AR_MSSD {v.get('ar_mssd', float('nan')):.3f} AR_MSPD {v.get('ar_mspd', float('nan')):.3f}"
+            for who, v in entry.items() if isinstance(v, dict)))
+    if yardsticks:
+        metrics["yardsticks"] = yardsticks
+        timings["yardsticks_s"] = time.time() - t0
     timings["total_s"] = time.time() - t_start
     metrics["run"] = {**metrics.get("run", {}), "timings": timings,
                       "config": OmegaConf.to_container(cfg, resolve=True)}

@@ -265,3 +265,30 @@ def test_keypoint_errors_scale_offset_and_median_against_cv2():
     assert all(math.isnan(v) for v in keypoint_errors(bad, X, R, t, LINEMOD_K).values())
     with pytest.raises(ValueError, match="19 2D keypoints for 20 3D keypoints"):
         keypoint_errors(pred[:19], X, R, t, LINEMOD_K)
+
+
+def test_depth_ratio_hand_values_and_symmetry():
+    """The centroid's depth, estimated over true: a box centred at (0, 0, 50) in the model frame."""
+    from kpd6d.evaluation.errors import depth_ratio
+
+    box = np.array([[x, y, z] for x in (-10, 10) for y in (-20, 20) for z in (30, 70)], dtype=np.float64)
+    I3 = np.eye(3)
+    assert depth_ratio(I3, [0, 0, 1100.0], I3, [0, 0, 1000.0], box) == pytest.approx(1150 / 1050)
+    Rx = np.array([[1.0, 0, 0], [0, 0, -1], [0, 1, 0]])  # 90 deg about x: the centre moves to (0, -50, 0)
+    assert depth_ratio(Rx, [0, 0, 1100.0], I3, [0, 0, 1000.0], box) == pytest.approx(1100 / 1050)
+    # 180 deg about the box's own z axis through its centre maps it onto itself: the GT up to that symmetry is exact
+    Rz = np.diag([-1.0, -1.0, 1.0])
+    assert depth_ratio(Rz, [5.0, -3.0, 1000.0], I3, [5.0, -3.0, 1000.0], box) == pytest.approx(1.0)
+    assert np.isnan(depth_ratio(np.full((3, 3), np.nan), [0, 0, 1.0], I3, [0, 0, 1.0], box))
+
+
+def test_depth_by_visibility_bands():
+    from kpd6d.evaluation.runner import depth_by_visibility
+
+    recs = [{"visib_fract": v, "depth_ratio": d} for v, d in
+            [(0.2, 1.10), (0.3, 1.00), (0.49, 1.30), (0.5, 1.01), (0.95, 0.97), (1.0, 1.0), (1.0, np.nan)]]
+    recs.append({"add": 1.0})  # unmatched: no ratio
+    b = depth_by_visibility(recs)
+    assert [x["n"] for x in b] == [3, 1, 0, 2]
+    assert b[0]["median"] == pytest.approx(1.10) and b[0]["within"] == pytest.approx(1 / 3)
+    assert b[1]["within"] == 1.0 and np.isnan(b[2]["median"]) and b[3]["within"] == 0.5

@@ -161,6 +161,27 @@ def test_symmetric_object_estimated_up_to_its_symmetry_is_correct_in_2d_too(tmp_
     assert m["per_object"]["1"]["proj2d_5px"] == 1.0
 
 
+def test_depth_by_visibility_measures_a_known_depth_offset(tmp_path):
+    """Object 1 estimated 90 mm farther along the optical axis, object 2 exact (both 90 % visible in make_dataset):
+    the 0.80-0.95 band holds the six estimates' ratios, computed here from the GT depths; the others are empty."""
+    from kpd6d.evaluation.runner import DEPTH_VISIBILITY_BANDS
+
+    root, poses, K = make_dataset(tmp_path / "ds")
+    m = evaluate(_pipeline(BoxKeyedKPD(root, poses, K, offset={1: [0.0, 0.0, 90.0]})), BopDataset(root),
+                 tmp_path / "r", oracle=True, n_overlays=0, progress=False)
+    want = np.array([(t[2] + 90.0) / t[2] if oid == 1 else 1.0 for (_im, oid), (_R, t) in poses.items()])
+    bands = m["depth_by_visibility"]
+    assert [(b["lo"], b["hi"]) for b in bands] == [tuple(map(float, b)) for b in DEPTH_VISIBILITY_BANDS]
+    band = next(b for b in bands if b["lo"] == 0.8)
+    assert band["n"] == 6 and sum(b["n"] for b in bands) == 6
+    assert band["median"] == pytest.approx(np.median(want), rel=1e-6)
+    assert band["q25"] == pytest.approx(np.percentile(want, 25), rel=1e-6)
+    assert band["q75"] == pytest.approx(np.percentile(want, 75), rel=1e-6)
+    assert band["within"] == 0.5  # object 2's three, not object 1's (~10 % too far)
+    report = (tmp_path / "r" / "report.md").read_text()
+    assert "Depth by visibility" in report and f"| 0.80–0.95 | 6 | {np.median(want):.3f}" in report
+
+
 def test_undetected_and_failed_pnp_count_as_failures(tmp_path):
     root, poses, K = make_dataset(tmp_path / "ds", hidden=(1, 2))
     kpd = BoxKeyedKPD(root, poses, K, nan_obj=None)

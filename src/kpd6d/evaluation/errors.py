@@ -47,6 +47,7 @@ __all__ = [
     "add_error",
     "adds_error",
     "as_symmetry_array",
+    "depth_ratio",
     "keypoint_errors",
     "mspd_error",
     "mssd_error",
@@ -133,6 +134,18 @@ def translation_error(t_est, t_gt) -> float:
     if _failed(0.0, np.asarray(t_est, dtype=np.float64)):
         return math.inf
     return float(_translation_distance(_pose(np.eye(3), t_est)[1], _pose(np.eye(3), t_gt)[1]))
+
+
+def depth_ratio(R_est, t_est, R_gt, t_gt, points) -> float:
+    """Estimated over true camera depth (z) of the centroid of ``points`` (model frame); > 1: too far. The
+    centroid of a symmetric object's points is fixed by its symmetries, so an estimate equal to the truth up to
+    a symmetry has ratio 1. NaN for a non-finite estimate."""
+    if _failed(np.asarray(R_est, dtype=np.float64), np.asarray(t_est, dtype=np.float64)):
+        return math.nan
+    c = _points(points).mean(axis=0)
+    R, t = _pose(R_est, t_est)
+    Rg, tg = _pose(R_gt, t_gt)
+    return float((R[2] @ c + t[2]) / (Rg[2] @ c + tg[2]))
 
 
 # ---------------------------------------------------------------------------------------------

@@ -117,6 +117,13 @@ def write_report_md(metrics: dict, path: str | os.PathLike, overlays: list[str] 
         rows += [("**mean**", "", m["keypoints"])] if m.get("keypoints") else []
         lines += [f"| {name} | {oid} | {k['n']} | {k['err_px']:.1f} | {k['centroid_px']:.1f} | {k['scale']:.3f} |"
                   for name, oid, k in rows]
+    dv = [b for b in metrics.get("depth_by_visibility") or [] if b["n"]]
+    if dv:
+        lines += ["", "Depth by visibility (estimated / true depth of each matched object's centre, by the share of "
+                  "the object visible; > 1: too far): median (IQR) and the share within 2 % of the truth.", "",
+                  "| visible fraction | n | depth ratio | within 2 % |", "|---|---:|---:|---:|"]
+        lines += [f"| {b['lo']:.2f}–{b['hi']:.2f} | {b['n']} | {b['median']:.3f} ({b['q25']:.3f}–{b['q75']:.3f}) | "
+                  f"{_pct(b['within'])} % |" for b in dv]
     det = metrics.get("detector")
     if det:
         names = {oid: o.get("name") or "-" for oid, o in metrics["per_object"].items()}

@@ -31,13 +31,20 @@ from pathlib import Path
 
 import numpy as np
 
-from kpd6d.evaluation.errors import add_error, adds_error, keypoint_errors, proj2d_error, symmetry_transforms
+from kpd6d.evaluation.errors import (
+    add_error,
+    adds_error,
+    depth_ratio,
+    keypoint_errors,
+    proj2d_error,
+    symmetry_transforms,
+)
 from kpd6d.evaluation.recall import add_s_accuracy, auc, proj2d_accuracy, recall_at
 from kpd6d.evaluation.results_io import PoseResult, read_bop_results, write_bop_results
 from kpd6d.io import atomic_write_image, atomic_write_json, atomic_write_text, read_json
 
-__all__ = ["ADD_THRESHOLDS", "PX_THRESHOLDS", "ShardMergeError", "compute_metrics", "eval_instances", "evaluate",
-           "frame_shards", "match_predictions"]
+__all__ = ["ADD_THRESHOLDS", "DEPTH_VISIBILITY_BANDS", "PX_THRESHOLDS", "ShardMergeError", "compute_metrics",
+           "depth_by_visibility", "eval_instances", "evaluate", "frame_shards", "match_predictions"]
 
 PX_THRESHOLDS = np.linspace(0.0, 50.0, 51)  # 2D projection accuracy curve (px)
 ADD_THRESHOLDS = np.linspace(0.0, 0.5, 51)  # ADD(-S) accuracy curve (fraction of the diameter)
@@ -150,6 +157,30 @@ def compute_metrics(records: list[dict], diameters: dict[int, float], names: dic
     if kp_objs:  # means over the objects, as the other means
         out["mean"]["keypoints"] = {"n": int(sum(k["n"] for k in kp_objs)),
                                     **{key: float(np.mean([k[key] for k in kp_objs])) for key in ("err_px", "centroid_px", "scale")}}
+    return out
+
+
+#: Bands of the GT visible fraction for :func:`depth_by_visibility`: [lo, hi) each, the last one closed.
+DEPTH_VISIBILITY_BANDS = ((0.0, 0.5), (0.5, 0.8), (0.8, 0.95), (0.95, 1.0))
+
+
+def depth_by_visibility(records: list[dict], bands=DEPTH_VISIBILITY_BANDS, within: float = 0.02) -> list[dict]:
+    """The matched estimates' depth ratio (:func:`~kpd6d.evaluation.errors.depth_ratio`, estimated / true depth of
+    the object's centroid) by the GT instance's visible fraction: per band ``lo``, ``hi``, ``n``, ``median``,
+    ``q25``, ``q75`` and ``within`` (the share within ``within`` of the true depth). Records without a visible
+    fraction or a finite ratio are left out; a band without records has n 0 and NaN statistics."""
+    rows = [(r["visib_fract"], r["depth_ratio"]) for r in records
+            if r.get("visib_fract") is not None and np.isfinite(r.get("depth_ratio", np.nan))]
+    vis = np.array([v for v, _ in rows], dtype=np.float64)
+    ratio = np.array([d for _, d in rows], dtype=np.float64)
+    out = []
+    for k, (lo, hi) in enumerate(bands):
+        sel = (vis >= lo) & ((vis <= hi) if k == len(bands) - 1 else (vis < hi))
+        r = ratio[sel]
+        stats = ({"median": float(np.median(r)), "q25": float(np.percentile(r, 25)), "q75": float(np.percentile(r, 75)),
+                  "within": float(np.mean(np.abs(r - 1.0) <= within))} if len(r)
+                 else dict.fromkeys(("median", "q25", "q75", "within"), float("nan")))
+        out.append({"lo": float(lo), "hi": float(hi), "n": len(r), **stats})
     return out
 
 
@@ -269,6 +300,9 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
         insts = eval_instances(f)
         for inst, (i, add, proj) in zip(insts, _assign(insts, preds, points, symmetric, f.K, symmetries)):
             rec_i = {"scene_id": f.scene_id, "im_id": f.im_id, "obj_id": inst.obj_id, "add": add, "proj": proj}
+            if i is not None:  # the matched estimate's depth against the truth, by how much of the object is seen
+                rec_i["depth_ratio"] = depth_ratio(preds[i]["R"], preds[i]["t"], inst.R, inst.t, points[inst.obj_id])
+                rec_i["visib_fract"] = inst.visib_fract
             kp3d = keypoints_3d.get(inst.obj_id)
             if i is not None and "kp" in preds[i] and kp3d is not None:  # the keypoints that made the pose
                 rec_i["kp"] = keypoint_errors(preds[i]["kp"], kp3d, inst.R, inst.t, f.K, symmetries.get(inst.obj_id))
@@ -278,6 +312,7 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
                 results.append(PoseResult(f.scene_id, f.im_id, p["obj_id"], p["score"], p["R"], p["t"], rec["time"]))
     metrics = compute_metrics(records, {o: m.diameter for o, m in models.items()},
                               {o: m.name for o, m in models.items()}, symmetric)
+    metrics["depth_by_visibility"] = depth_by_visibility(records)
     write_bop_results(out_dir / "results.csv", results)
 
     # BOP19 scores of the written results.csv, on the evaluated frames' targets (the dataset's targets

@@ -49,6 +49,12 @@ def test_run_experiment_end_to_end_then_resumes(tmp_path):
     m2 = run_experiment(_cfg(), run)
     assert {f: (run / f).stat().st_mtime_ns for f in stamps} == stamps
     assert m2["mean"]["n"] == 3
+    # ... and its stage times add up over both invocations (the skipped stages keep theirs): timings.json
+    t1, t2 = saved["run"]["timings"], m2["run"]["timings"]
+    assert t2["detector_s"] >= t1["detector_s"] > 0 and t2["kpd_s"] >= t1["kpd_s"] > 0
+    assert t2["total_s"] == pytest.approx(sum(v for k, v in t2.items() if k not in ("total_s", "invocation_s")))
+    assert t2["invocation_s"] < t2["total_s"]
+    assert json.loads((run / "timings.json").read_text())["kpd_s"] == pytest.approx(t2["kpd_s"])
 
 
 def test_designator_change_redesignates(tmp_path):

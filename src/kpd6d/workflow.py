@@ -14,6 +14,9 @@ Steps, each skipped when its output already exists (so an interrupted run resume
    :func:`yardstick_splits`): the run's own generated val split, or a split generated with other
    appearance settings — the splits settings are chosen on when the test data are real frames.
 
+``timings.json`` (and ``metrics.json``'s ``run.timings``) holds the wall time spent in each stage summed over
+every invocation in the folder, so a resumed run still reports what its stages cost.
+
 Evaluations resume frame by frame (their ``predictions.jsonl``) and refuse a folder whose predictions
 were made with other settings (:func:`kpd6d.evaluation.runner.evaluate`).
 
@@ -403,6 +406,35 @@ def _auto_depth_calibration(cfg, root: Path, det, kpd, out_dir: Path) -> str:
     return str(out)
 
 
+class _StageClock:
+    """Wall time spent in each stage of a run folder, summed over every invocation that worked in it (an
+    interrupted stage's time counts with its resumption's; a stage skipped because its output exists adds
+    ~0): ``timings.json``, written atomically after each stage, so an interruption keeps what came before."""
+
+    def __init__(self, path: Path, t_start: float) -> None:
+        from kpd6d.io import read_json
+
+        self.path, self.t_start, self.t0 = path, t_start, t_start
+        try:
+            old = read_json(path, what="stage timings") if path.is_file() else {}
+        except ValueError:  # a broken record loses only the earlier invocations' times
+            old = {}
+        self.spent = {k: float(v) for k, v in old.items() if k.endswith("_s") and isinstance(v, (int, float))}
+
+    def done(self, key: str) -> None:
+        from kpd6d.io import atomic_write_text
+
+        now = time.time()
+        self.spent[key] = self.spent.get(key, 0.0) + (now - self.t0)
+        self.t0 = now
+        atomic_write_text(self.path, json.dumps(self.spent, indent=1))
+
+    def summary(self) -> dict:
+        """The stages' summed times, ``total_s`` (their sum) and ``invocation_s`` (this invocation's wall time)."""
+        stages = {k: v for k, v in self.spent.items() if k not in ("total_s", "invocation_s")}
+        return {**stages, "total_s": sum(stages.values()), "invocation_s": time.time() - self.t_start}
+
+
 def run_experiment(cfg, run_dir: str | Path) -> dict:
     """Run every step into ``run_dir``; returns the evaluation metrics (also in ``run_dir/metrics.json``)."""
     from omegaconf import OmegaConf
@@ -425,30 +457,27 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
     designate_keypoints(models, cfg.designator, keypoints_file, cfg.get("designator_per_object"))
 
     root = Path(cfg.data.root) if cfg.data.root else run_dir / "data"
+    clock = _StageClock(run_dir / "timings.json", t_start)
     generate(cfg, root)
-    timings = {"prepare_s": time.time() - t_start}
+    clock.done("prepare_s")
 
-    t0 = time.time()
     det = cfg.detector_ckpt or train_detector_stage(cfg, run_dir / "detector", root)
-    timings["detector_s"] = time.time() - t0
-    t0 = time.time()
+    clock.done("detector_s")
     kpd = cfg.kpd_ckpt or train_kpd_stage(cfg, run_dir / "kpd", root, keypoints_file)
-    timings["kpd_s"] = time.time() - t0
+    clock.done("kpd_s")
 
     # evaluation data: the generated test split, or a BOP dataset of real images (evaluate.data_root)
     eval_root = Path(cfg.evaluate.data_root) if cfg.evaluate.get("data_root") else root
-    t0 = time.time()
     cal = None
     if str(cfg.evaluate.get("depth_calibration", 1.0)) == "auto":
         cal = _auto_depth_calibration(cfg, root, det, kpd, run_dir / "calibration")
-        timings["calibration_s"] = time.time() - t0
+        clock.done("calibration_s")
     metrics = _evaluate(cfg, eval_root, det, kpd, run_dir / "eval", cal)
     with_oracle = bool(cfg.evaluate.get("oracle")) and str(det) != "oracle"  # also with GT boxes: the KPD alone
     if with_oracle:
         oracle = _evaluate(cfg, eval_root, "oracle", kpd, run_dir / "eval_oracle", cal)
         metrics["oracle_boxes"] = {"mean": oracle["mean"], "report": str(run_dir / "eval_oracle" / "report.md")}
-    timings["evaluate_s"] = time.time() - t0
-    t0 = time.time()
+    clock.done("evaluate_s")
     yardsticks = {}
     for name, (yroot, ysplit) in yardstick_splits(cfg, run_dir, root).items():
         ydir = run_dir / "yardsticks" / name
@@ -462,9 +491,8 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
             for who, v in entry.items() if isinstance(v, dict)))
     if yardsticks:
         metrics["yardsticks"] = yardsticks
-        timings["yardsticks_s"] = time.time() - t0
-    timings["total_s"] = time.time() - t_start
-    metrics["run"] = {**metrics.get("run", {}), "timings": timings,
+        clock.done("yardsticks_s")
+    metrics["run"] = {**metrics.get("run", {}), "timings": clock.summary(),
                       "config": OmegaConf.to_container(cfg, resolve=True)}
     atomic_write_text(run_dir / "metrics.json", json.dumps(metrics, indent=1, default=float))
     return metrics

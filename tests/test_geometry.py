@@ -230,3 +230,11 @@ def test_check_box_inputs_normalises_and_names_what_is_wrong():
 
     with pytest.raises(Custom, match=r"track: the KPD has no keypoints for object\(s\) \[9\]"):
         check_box_inputs([[1, 2, 30, 40]], [9], None, [0.5], 1, {3: 0}, error=Custom, where="track")
+
+
+def test_clip_box_to_image_hand_values():
+    from kpd6d.geometry import clip_box_to_image
+
+    np.testing.assert_allclose(clip_box_to_image([-10, 5], [50, 500], 640, 480), [0, 5, 50, 475])
+    assert clip_box_to_image([639, 10], [700, 20], 640, 480) is None  # 1 px left: under MIN_BOX_PX
+    np.testing.assert_allclose(clip_box_to_image([638, 10], [700, 20], 640, 480), [638, 10, 2, 10])

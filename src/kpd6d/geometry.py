@@ -32,6 +32,7 @@ __all__ = [
     "box_to_crop_affine",
     "check_box_inputs",
     "check_intrinsics",
+    "clip_box_to_image",
     "compose_poses",
     "cv_pose_to_gl_camera_pose",
     "cv_pose_to_gl_model_view",
@@ -415,6 +416,17 @@ def box_iou_xywh(a, b) -> np.ndarray:
     y2 = np.minimum(a[1] + a[3], b[:, 1] + b[:, 3])
     inter = np.clip(x2 - x1, 0, None) * np.clip(y2 - y1, 0, None)
     return inter / np.maximum(a[2] * a[3] + b[:, 2] * b[:, 3] - inter, 1e-9)
+
+
+def clip_box_to_image(lo, hi, width: int, height: int, min_size: float = MIN_BOX_PX) -> np.ndarray | None:
+    """The box from corner ``lo`` (2,) to ``hi`` (2,) px clipped to a ``width`` x ``height`` image, as (4,) xywh;
+    None when less than ``min_size`` of it is left on a side."""
+    size = np.array([width, height], dtype=np.float64)
+    lo = np.clip(np.asarray(lo, dtype=np.float64), 0, size)
+    hi = np.clip(np.asarray(hi, dtype=np.float64), 0, size)
+    if (hi - lo).min() < min_size:
+        return None
+    return np.concatenate([lo, hi - lo])
 
 
 def box_problem(box, width: int, height: int, min_size: float = MIN_BOX_PX) -> str:

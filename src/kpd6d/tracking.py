@@ -47,7 +47,7 @@ from typing import Any
 
 import numpy as np
 
-from kpd6d.geometry import MIN_BOX_PX, bbox_from_points, project_points
+from kpd6d.geometry import clip_box_to_image, project_points
 
 __all__ = ["PoseTracker", "Track", "matrix_from_quat", "projected_box", "quat_from_matrix", "slerp_rotation",
            "smooth_pose", "track_frames"]
@@ -135,10 +135,7 @@ def projected_box(points, K, R, t, image_hw, margin: float = 0.0) -> tuple[np.nd
     ilo, ihi = np.clip(lo, 0, [W, H]), np.clip(hi, 0, [W, H])
     in_view = float(np.prod(np.maximum(ihi - ilo, 0.0))) / area
     c, half = (lo + hi) / 2, (hi - lo) * (1.0 + margin) / 2
-    glo, ghi = np.clip(c - half, 0, [W, H]), np.clip(c + half, 0, [W, H])
-    if (ghi - glo).min() < MIN_BOX_PX:
-        return None, in_view
-    return bbox_from_points(np.stack([glo, ghi])), in_view
+    return clip_box_to_image(c - half, c + half, W, H), in_view
 
 
 # -- the tracker -----------------------------------------------------------------------------------

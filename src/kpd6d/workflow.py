@@ -35,7 +35,7 @@ import numpy as np
 from kpd6d.config import cfg_float, cfg_int, to_int
 from kpd6d.io import to_plain
 
-__all__ = ["YARDSTICK_KEYS", "run_evaluation", "run_experiment", "yardstick_splits"]
+__all__ = ["YARDSTICK_KEYS", "run_evaluation", "run_experiment", "yardstick_line", "yardstick_splits"]
 
 
 def _log(msg: str) -> None:
@@ -389,6 +389,13 @@ def _scores(mean: dict) -> dict:
     return {k: mean[k] for k in ("ar_mssd", "ar_mspd", "add_s_01d", "proj2d_5px") if k in mean}
 
 
+def yardstick_line(name: str, entry: dict) -> str:
+    """One line of a yardstick's scores (``metrics["yardsticks"][name]``): AR_MSSD / AR_MSPD per box source, %."""
+    return f"yardstick {name}: " + "; ".join(
+        f"{who} AR_MSSD {100 * v.get('ar_mssd', float('nan')):.1f} % AR_MSPD {100 * v.get('ar_mspd', float('nan')):.1f} %"
+        for who, v in entry.items() if isinstance(v, dict))
+
+
 def _auto_depth_calibration(cfg, root: Path, det, kpd, out_dir: Path) -> str:
     """``evaluate.depth_calibration=auto``: fit it on the run's synthetic validation split with the
     run's own detector and evaluation settings (``out_dir``: that evaluation and depth_calibration.json;
@@ -419,7 +426,7 @@ class _StageClock:
             old = read_json(path, what="stage timings") if path.is_file() else {}
         except ValueError:  # a broken record loses only the earlier invocations' times
             old = {}
-        self.spent = {k: float(v) for k, v in old.items() if k.endswith("_s") and isinstance(v, (int, float))}
+        self.spent = {k: float(v) for k, v in old.items() if isinstance(v, (int, float))}  # only stages are written
 
     def done(self, key: str) -> None:
         from kpd6d.io import atomic_write_text
@@ -431,8 +438,7 @@ class _StageClock:
 
     def summary(self) -> dict:
         """The stages' summed times, ``total_s`` (their sum) and ``invocation_s`` (this invocation's wall time)."""
-        stages = {k: v for k, v in self.spent.items() if k not in ("total_s", "invocation_s")}
-        return {**stages, "total_s": sum(stages.values()), "invocation_s": time.time() - self.t_start}
+        return {**self.spent, "total_s": sum(self.spent.values()), "invocation_s": time.time() - self.t_start}
 
 
 def run_experiment(cfg, run_dir: str | Path) -> dict:
@@ -486,9 +492,7 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
         if with_oracle:
             entry["oracle"] = _scores(_evaluate(cfg, yroot, "oracle", kpd, ydir / "eval_oracle", cal, split=ysplit)["mean"])
         yardsticks[name] = entry
-        _log(f"yardstick {name}: " + "; ".join(
-            f"{who} AR_MSSD {v.get('ar_mssd', float('nan')):.3f} AR_MSPD {v.get('ar_mspd', float('nan')):.3f}"
-            for who, v in entry.items() if isinstance(v, dict)))
+        _log(yardstick_line(name, entry))
     if yardsticks:
         metrics["yardsticks"] = yardsticks
         clock.done("yardsticks_s")

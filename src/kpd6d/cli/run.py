@@ -11,15 +11,14 @@ from kpd6d.cli.hydra_app import hydra_main
 
 
 def summarize(metrics: dict, run_dir) -> str:
+    from kpd6d.workflow import yardstick_line
+
     mean = metrics["mean"]
     t = metrics.get("run", {}).get("timings", {})
     return (f"ADD(-S) 0.1d {100 * mean['add_s_01d']:.1f} %   2D projection 5px {100 * mean['proj2d_5px']:.1f} %   "
             f"AR_MSSD {100 * mean.get('ar_mssd', float('nan')):.1f} %   AR_MSPD {100 * mean.get('ar_mspd', float('nan')):.1f} %"
             f"   ({t.get('total_s', 0) / 60:.1f} min)\nreport: {run_dir}/eval/report.md"
-            + "".join(f"\nyardstick {name}: " + "; ".join(
-                f"{who} AR_MSSD {100 * v.get('ar_mssd', float('nan')):.1f} % AR_MSPD {100 * v.get('ar_mspd', float('nan')):.1f} %"
-                for who, v in entry.items() if isinstance(v, dict))
-                for name, entry in metrics.get("yardsticks", {}).items()))
+            + "".join(f"\n{yardstick_line(name, entry)}" for name, entry in metrics.get("yardsticks", {}).items()))
 
 
 @hydra_main("run")

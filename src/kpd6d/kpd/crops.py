@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from kpd6d.geometry import affine_apply, box_iou_xywh, project_points
+from kpd6d.geometry import affine_apply, box_iou_xywh, clip_box_to_image, project_points
 from kpd6d.kpd.codec import build_codec
 
 __all__ = ["BOX_SOURCES", "VISIBILITY_MODES", "KPDCropDataset", "canonicalizer_for", "inference_crops",
@@ -206,10 +206,9 @@ class KPDCropDataset(Dataset):
         if full_hw is not None:
             gt = inst.bbox_obj if inst.bbox_obj is not None else self._projected_box(frame, inst)
             gt = np.asarray(gt, dtype=np.float64)
-            size = np.array([full_hw[1], full_hw[0]], dtype=np.float64)
-            lo, hi = np.clip(gt[:2], 0, size), np.clip(gt[:2] + gt[2:], 0, size)
-            if (hi - lo).min() >= 2:
-                return np.concatenate([lo, hi - lo])
+            clipped = clip_box_to_image(gt[:2], gt[:2] + gt[2:], full_hw[1], full_hw[0])
+            if clipped is not None:
+                return clipped
         gt = inst.bbox_visib if self.box_source in ("visib", "detections") else inst.bbox_obj
         if gt is None:  # no scene_gt_info: the box of the projected model
             gt = self._projected_box(frame, inst)

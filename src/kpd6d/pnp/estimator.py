@@ -41,7 +41,13 @@ from typing import Any, NamedTuple
 
 import numpy as np
 
-from kpd6d.geometry import bbox_from_points, box_iou_xywh, check_box_inputs, check_intrinsics, project_points
+from kpd6d.geometry import (
+    box_iou_xywh,
+    check_box_inputs,
+    check_intrinsics,
+    clip_box_to_image,
+    project_points,
+)
 from kpd6d.pnp.confidence import RESIDUAL_SCALE_PX
 from kpd6d.pnp.top_l import pose_records, solve_top_l, top_l_mask
 
@@ -592,8 +598,7 @@ class PoseEstimatorBase:
             uv, z = project_points(self.object_points(oid), Ks[b], np.asarray(est.R[n]), t, return_depth=True)
             if not (z > 0).all() or not np.isfinite(uv).all():
                 continue
-            lo, hi = np.clip(uv.min(0), 0, [W, H]), np.clip(uv.max(0), 0, [W, H])
-            if (hi - lo).min() < 2:
-                continue
-            new[n] = bbox_from_points(np.stack([lo, hi]))
+            box = clip_box_to_image(uv.min(0), uv.max(0), W, H)
+            if box is not None:
+                new[n] = box
         return new

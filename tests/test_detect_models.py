@@ -328,6 +328,9 @@ def test_checkpoint_round_trip_and_wrong_objects(tmp_path):
     loaded = load_detector(path)
     assert loaded.obj_ids == OBJ_IDS and loaded.input_size == (64, 48) and not loaded.training
     assert loaded.box_stats == {"mean": [0.0, 0.0, 0.0, 0.0]}
+    assert loaded.box_field == "bbox_visib"  # the default: a detector of visible boxes
+    det.box_field = "bbox_obj"
+    assert load_detector(save_detector(det, tmp_path / "amodal.pt")).box_field == "bbox_obj"
     x = torch.rand(2, 3, 48, 64)
     a, b = det.eval().predict(x), loaded.predict(x)
     for da, db in zip(a, b):

@@ -152,6 +152,23 @@ def test_detection_dataset_reads_bop_boxes(toy_root):
         DetectionDataset(toy_root, "nope")
 
 
+def test_detection_dataset_clips_full_boxes_to_the_image(tmp_path):
+    root = _write_toy_bop(tmp_path / "bop", "train", 2, seed=3)
+    info_path = root / "train" / "000000" / "scene_gt_info.json"
+    info = json.loads(info_path.read_text())
+    e0, e1 = info["0"]
+    e0["bbox_obj"] = [-7, 5, 30, 20]  # 7 px past the left edge
+    e1["bbox_obj"] = [80, -4, 30, 70]  # past the right (W 96), top and bottom (H 64) edges
+    info_path.write_text(json.dumps(info))
+    boxes = DetectionDataset(root, "train", box="bbox_obj", input_size=None)[0][1]["orig_boxes"]
+    # by hand: x0 = max(x, 0), x1 = min(x + w, W), likewise in y
+    torch.testing.assert_close(boxes, torch.tensor([[0.0, 5, 23, 20], [80.0, 0, 16, 64]]))
+    half = DetectionDataset(root, "train", box="bbox_obj", input_size=[48, 32])[0][1]["boxes"]
+    torch.testing.assert_close(half, boxes / 2)
+    visib = DetectionDataset(root, "train", input_size=None)[0][1]["orig_boxes"]
+    torch.testing.assert_close(visib, torch.tensor([e["bbox_visib"] for e in info["0"]], dtype=torch.float32))
+
+
 def test_detection_dataset_train_crop_windows_and_clips_the_boxes(toy_root):
     full = DetectionDataset(toy_root, "train", input_size=None, min_visib_fract=0.0)
     ds = DetectionDataset(toy_root, "train", input_size=None, min_visib_fract=0.0, train_crop=[40, 30], min_kept=0.2)
@@ -252,6 +269,7 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
             f"data.root={toy_root}", f"hydra.run.dir={run}", "detector_recipe@stage=fast", "stage.trainer.max_epochs=2",
             "stage.num_threads=1", "stage.batch_size=4", "detector.input_size=[96,64]", "stage.augment.scale=0.1",
             "stage.ema_decay=0.9", "stage.train_crop=[64,48]",  # trains on 64x48 windows, validates on 96x64
+            "stage.box=bbox_obj",  # an amodal detector: the checkpoint says so
             "stage.malloc.mmap_threshold_mb=32", "stage.malloc.trim_threshold_mb=1024"]
     env = dict(os.environ, PYTHONUNBUFFERED="1")
     res = subprocess.run(args, cwd=tmp_path, capture_output=True, text=True, env=env, timeout=300)
@@ -259,6 +277,7 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     assert "stage: glibc malloc mmap_threshold 32 MiB, trim_threshold 1024 MiB" in res.stdout
     det = load_detector(run / "detector.pt", obj_ids=[1, 5])
     assert det.obj_ids == [1, 2, 5] and det.input_size == (96, 64)
+    assert det.box_field == "bbox_obj"
     assert det.box_stats is None or "offsets" in det.box_stats
     from kpd6d.box_errors import load_box_error_stats
 
@@ -276,6 +295,7 @@ def test_train_cli_end_to_end_and_resume(toy_root, tmp_path):
     ckpt = load_detector(run / "checkpoints" / "last.ckpt")
     x = torch.rand(1, 3, 64, 96)
     torch.testing.assert_close(ckpt.predict(x)[0].scores, det.predict(x)[0].scores)
+    assert ckpt.box_field == "bbox_obj"
     # rerunning in the same folder resumes from last.ckpt and trains only the missing epoch
     args3 = [a if a != "stage.trainer.max_epochs=2" else "stage.trainer.max_epochs=3" for a in args]
     res = subprocess.run(args3,

@@ -124,6 +124,45 @@ def test_perfect_predictions_write_all_outputs(tmp_path):
     assert (np.abs(ov.astype(int) - [40, 40, 40]).sum(-1) == 0).mean() > 0.8
 
 
+def test_oracle_targets_visible_or_full_boxes_by_hand():
+    from kpd6d.data.dataset import Instance
+    from kpd6d.evaluation.runner import oracle_targets
+
+    eye = (np.eye(3), np.zeros(3))
+    insts = [Instance(1, *eye, bbox_obj=np.array([-10, 20, 50, 40]), bbox_visib=np.array([5, 25, 20, 30])),
+             Instance(2, *eye, bbox_obj=np.array([300, 200, 40, 60]), bbox_visib=np.array([300, 200, 20, 40])),
+             Instance(5, *eye, bbox_obj=np.array([10, 10, 30, 30]), bbox_visib=np.array([0, 0, 0, 0]))]  # hidden
+    vis = oracle_targets(None, insts)
+    np.testing.assert_array_equal(vis["boxes"], [[5, 25, 20, 30], [300, 200, 20, 40]])
+    assert vis["obj_ids"].tolist() == [1, 2]
+    full = oracle_targets(None, insts, "bbox_obj", (320, 240))  # clipped: x 0..40, x 300..320, y 200..240
+    np.testing.assert_array_equal(full["boxes"], [[0, 20, 40, 40], [300, 200, 20, 40]])
+    assert full["obj_ids"].tolist() == [1, 2]
+    with pytest.raises(ValueError, match="needs the image_size"):
+        oracle_targets(None, insts, "bbox_obj")
+    with pytest.raises(ValueError, match="must be one of"):
+        oracle_targets(None, insts, "amodal", (320, 240))
+
+
+def test_oracle_with_full_boxes_crops_the_whole_object(tmp_path):
+    # the visible boxes are half the full ones (occluded objects); a KPD that knows poses only by their full
+    # box is exact when the oracle gives full boxes, and is never asked about a visible one
+    root, poses, K = make_dataset(tmp_path / "ds", n_frames=2)
+    gi_path = root / "test" / "000001" / "scene_gt_info.json"
+    gi = json.loads(gi_path.read_text())
+    for entries in gi.values():
+        for e in entries:
+            x, y, w, h = e["bbox_obj"]
+            e["bbox_visib"] = [x, y, w // 2, h]
+    gi_path.write_text(json.dumps(gi))
+    m = evaluate(_pipeline(BoxKeyedKPD(root, poses, K)), BopDataset(root), tmp_path / "run", oracle=True,
+                 oracle_box="bbox_obj", progress=False, n_overlays=0)
+    assert m["mean"]["add_s_01d"] == 1.0 and m["failures"] == 0 and m["mean"]["n"] == 4
+    with pytest.raises(KeyError):  # the same KPD given the visible boxes has no pose for them
+        evaluate(_pipeline(BoxKeyedKPD(root, poses, K)), BopDataset(root), tmp_path / "run_visib", oracle=True,
+                 progress=False, n_overlays=0)
+
+
 def test_known_translation_error_gives_known_curves(tmp_path):
     root, poses, K = make_dataset(tmp_path / "ds")
     d1 = float(np.linalg.norm(EXTENTS[1]))  # 103.92 mm

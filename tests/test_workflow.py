@@ -100,11 +100,19 @@ def test_evaluation_on_another_dataset_with_oracle_boxes_too(tmp_path):
     other = tmp_path / "other"
     generate_dataset(other, obj_ids=[1], num_images=2, split="test", seed=99, workers=1, width=160, height=120)
     run = tmp_path / "run"
-    m = run_experiment(_cfg(["data.num_test=0", f"evaluate.data_root={other}", "evaluate.oracle=true"]), run)
+    amodal = ["detector_stage.box=bbox_obj", "evaluate.oracle_box=bbox_obj"]  # the detector and the oracle on full boxes
+    with pytest.raises(ValueError, match=r"evaluate\.oracle_box='amodal': must be one of bbox_visib, bbox_obj"):
+        run_experiment(_cfg(["evaluate.oracle_box=amodal"]), tmp_path / "bad")
+    assert not (tmp_path / "bad" / "data").exists()  # stopped before any data is made
+    m = run_experiment(_cfg(["data.num_test=0", f"evaluate.data_root={other}", "evaluate.oracle=true", *amodal]), run)
     assert not (run / "data" / "test").exists()  # nothing generated for testing
     assert m["mean"]["n"] == 2 and m["oracle_boxes"]["mean"]["n"] == 2
     oracle = json.loads((run / "eval_oracle" / "metrics.json").read_text())
     assert oracle["run"]["detector"] == "oracle" and oracle["run"]["dataset"] == str(other)
+    assert oracle["run"]["oracle_box"] == "bbox_obj"
+    from kpd6d.detection import load_detector
+
+    assert load_detector(run / "detector" / "detector.pt").box_field == "bbox_obj"
     assert json.loads((run / "eval" / "metrics.json").read_text())["run"]["dataset"] == str(other)
 
 

@@ -198,7 +198,8 @@ def evaluate_detector_on(det_ckpt, root: Path, split: str, obj_ids, max_frames=N
     from kpd6d.detection.metrics import evaluate_detector
 
     det = load_detector(det_ckpt)
-    ds = DetectionDataset(root, split, obj_ids=obj_ids or det.obj_ids, input_size=det.input_size)
+    ds = DetectionDataset(root, split, obj_ids=obj_ids or det.obj_ids, input_size=det.input_size,
+                          box=det.box_field)  # scored on the boxes it was trained to give
     if max_frames:
         import torch
 
@@ -254,16 +255,23 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     ds = BopDataset(root, cfg.data.split, obj_ids=wanted, targets=targets)
     pipeline.set_refiner(build_refiner(to_plain(cfg.get("refiner")), lambda: ds.load_models(wanted),
                                        source=f"{ds.models_dir}"))
+    oracle = str(cfg.detector_ckpt) == "oracle"
+    oracle_box = str(cfg.get("oracle_box") or "bbox_visib")
+    from kpd6d.evaluation.runner import ORACLE_BOXES
+
+    if oracle_box not in ORACLE_BOXES:
+        raise ValueError(f"oracle_box={oracle_box!r}: must be one of {', '.join(ORACLE_BOXES)}")
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
             **({"crop_tta": crop_tta_record(pipeline.crop_tta, pipeline.crop_tta_stability)} if pipeline.crop_tta > 1 else {}),
             **({"candidates": candidates_record(*pipeline.candidate_spec)} if pipeline.candidate_spec.verifies else {}),
             "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device),
             **({"refiner": pipeline.refiner.settings()} if pipeline.refiner is not None else {}),
-            **({"detector_overrides": det_over} if det_over and str(cfg.detector_ckpt) != "oracle" else {})}
+            **({"detector_overrides": det_over} if det_over and str(cfg.detector_ckpt) != "oracle" else {}),
+            **({"oracle_box": oracle_box} if oracle and oracle_box != "bbox_visib" else {})}
     if backend != "torch":
         info.update(backend=backend, export_dir=str(cfg.export_dir))
-    metrics = evaluate(pipeline, ds, out_dir, oracle=str(cfg.detector_ckpt) == "oracle",
+    metrics = evaluate(pipeline, ds, out_dir, oracle=oracle, oracle_box=oracle_box,
                        batch_size=cfg_int(cfg, "batch_size"), max_frames=cfg.data.max_frames,
                        n_overlays=cfg_int(cfg, "overlays"), run_info=info, progress=bool(cfg.progress),
                        extra_metrics=extra_metrics, shard=to_int(cfg.get("shard", 0), "shard"),
@@ -312,6 +320,7 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
                                                        "evaluate.detector_overrides"),
         "depth_calibration": _depth_calibration(cfg.evaluate.get("depth_calibration", 1.0)),
         "refiner": to_plain(cfg.evaluate.get("refiner")),
+        "oracle_box": str(cfg.evaluate.get("oracle_box") or "bbox_visib"),
         "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress), **over,
     })
 
@@ -456,6 +465,10 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
         check_stage_config(cfg.kpd_stage, "kpd_stage")
         _kpd_networks(cfg)  # unknown names stop the run before any data is made
         _kpd_checkpoint(cfg)
+    from kpd6d.evaluation.runner import ORACLE_BOXES
+
+    if str(cfg.evaluate.get("oracle_box") or "bbox_visib") not in ORACLE_BOXES:
+        raise ValueError(f"evaluate.oracle_box={cfg.evaluate.oracle_box!r}: must be one of {', '.join(ORACLE_BOXES)}")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     models = load_objects(cfg.objects)

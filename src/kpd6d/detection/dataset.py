@@ -2,7 +2,7 @@
 network pixels, labels as class indices of a fixed ``obj_ids`` list.
 
 ``box='bbox_visib'`` (default) trains on the visible part's box, ``box='bbox_obj'`` on the full
-projected box. Instances with ``visib_fract < min_visib_fract`` (or an empty box) are left out.
+projected box clipped to the image (an amodal detector). Instances with ``visib_fract < min_visib_fract`` (or an empty box) are left out.
 
 ``train_crop=(w, h)`` trains on windows of the network input: each item is a random ``w x h`` window
 (containing the centre of one of its kept boxes, drawn uniformly, when there is one) of the image
@@ -23,6 +23,7 @@ import torch
 from torch.utils.data import Dataset
 
 from kpd6d.detection.detections import DetectionInputError
+from kpd6d.geometry import clip_box_to_image
 
 __all__ = ["BOX_FIELDS", "DetectionDataset", "collate_detection"]
 
@@ -64,8 +65,9 @@ class DetectionDataset(Dataset):
     def __len__(self) -> int:
         return len(self.bop)
 
-    def annotations(self, i: int) -> tuple[np.ndarray, np.ndarray]:
-        """Kept (boxes (n, 4) xywh original px, obj_ids (n,)) of frame ``i``."""
+    def annotations(self, i: int, image_size: tuple[int, int]) -> tuple[np.ndarray, np.ndarray]:
+        """Kept (boxes (n, 4) xywh original px, obj_ids (n,)) of frame ``i``, whose image is ``image_size``
+        (width, height) px."""
         frame = self.bop[i]
         boxes, ids = [], []
         for inst in frame.instances:
@@ -78,6 +80,11 @@ class DetectionDataset(Dataset):
             if inst.visib_fract is not None and inst.visib_fract < self.min_visib_fract:
                 continue
             b = np.asarray(b, dtype=np.float32)
+            if self.box == "bbox_obj":  # the whole object's box, clipped to the image (the part a detector can see)
+                clipped = clip_box_to_image(b[:2], b[:2] + b[2:], *image_size, min_size=0.0)
+                if clipped is None:
+                    continue
+                b = clipped.astype(np.float32)
             if b[2] < self.min_box_size or b[3] < self.min_box_size:
                 continue
             boxes.append(b)
@@ -93,7 +100,7 @@ class DetectionDataset(Dataset):
             w, h = self.input_size
             rgb = cv2.resize(rgb, (w, h), interpolation=cv2.INTER_AREA)
             sx, sy = W / w, H / h
-        boxes, ids = self.annotations(i)
+        boxes, ids = self.annotations(i, (W, H))
         scale = np.array([sx, sy, sx, sy], dtype=np.float32)
         net_boxes = boxes / scale
         if self.train_crop is not None:

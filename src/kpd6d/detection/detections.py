@@ -168,6 +168,9 @@ class Detector(nn.Module):
         self.max_detections = int(max_detections)
         self.one_per_object = bool(one_per_object)
         self.box_stats: dict | None = None  # validation box-error statistics, kept with the checkpoint
+        # the GT box field it was trained on (kept with the checkpoint): "bbox_visib" (the visible part's box) or
+        # "bbox_obj" (the whole object's box clipped to the image: an amodal detector); its AP is scored on the same
+        self.box_field: str = "bbox_visib"
         self.test_scales: tuple[float, ...] = (1.0,)  # network input sizes at inference, as factors of input_size
         self.register_buffer("_obj_id_table", torch.tensor(self.obj_ids or [], dtype=torch.long),
                              persistent=False)

@@ -101,6 +101,7 @@ def detector_record(detector: Detector) -> dict:
         "class_to_obj_id": {i: oid for i, oid in enumerate(detector.obj_ids or [])},
         "input_size": list(detector.input_size) if detector.input_size else None,
         "box_stats": detector.box_stats,
+        "box": detector.box_field,
     }
 
 
@@ -197,6 +198,7 @@ def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None,
     # the rebuilt spec (defaults resolved) with the record's weight paths, which were not rebuilt
     det._spec["params"].update(to_plain({k: rec["params"][k] for k in _WEIGHT_PARAMS if k in rec["params"]}))
     det.box_stats = rec.get("box_stats")
+    det.box_field = rec.get("box") or "bbox_visib"  # checkpoints before the field: visible-box detectors
     det.set_test_scales(test_scales)
     det.to(map_location if isinstance(map_location, (str, torch.device)) else "cpu")
     return det.eval()

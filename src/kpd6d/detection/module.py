@@ -204,3 +204,4 @@ class DetectorModule(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         rec = checkpoint.get(CHECKPOINT_KEY) or {}
         self.detector.box_stats = rec.get("box_stats")
+        self.detector.box_field = rec.get("box") or "bbox_visib"

@@ -73,6 +73,7 @@ def train_detector(cfg: Any) -> Path:
                             eval_score_threshold=float(st.eval_score_threshold),
                             box_stats_iou=float(st.box_stats_iou), stats_path=str(stats_path), seed=seed,
                             channels_last=bool(st.channels_last), finetune=to_plain(st.finetune))
+    module.detector.box_field = str(st.box)  # recorded in every checkpoint: what its boxes mean
     bs, workers = int(st.batch_size), int(st.num_workers)
     train_dl = DataLoader(train_ds, batch_size=bs, shuffle=True, num_workers=workers, collate_fn=collate_detection,
                           drop_last=len(train_ds) > bs, persistent_workers=workers > 0)

@@ -41,6 +41,7 @@ from kpd6d.evaluation.errors import (
 )
 from kpd6d.evaluation.recall import add_s_accuracy, auc, proj2d_accuracy, recall_at
 from kpd6d.evaluation.results_io import PoseResult, read_bop_results, write_bop_results
+from kpd6d.geometry import clip_box_to_image
 from kpd6d.io import atomic_write_image, atomic_write_json, atomic_write_text, read_json
 
 __all__ = ["ADD_THRESHOLDS", "DEPTH_VISIBILITY_BANDS", "PX_THRESHOLDS", "ShardMergeError", "compute_metrics",
@@ -64,15 +65,29 @@ def eval_instances(frame) -> list:
     return out
 
 
-def oracle_targets(frame, instances) -> dict:
-    """GT boxes of ``instances`` for the oracle detector: the visible box (the object's box when no
-    scene_gt_info); instances with an empty visible box get none (fully occluded: not detected)."""
+ORACLE_BOXES = ("bbox_visib", "bbox_obj")
+
+
+def oracle_targets(frame, instances, box: str = "bbox_visib", image_size: tuple[int, int] | None = None) -> dict:
+    """GT boxes of ``instances`` for the oracle detector: ``box="bbox_visib"`` the visible box (the object's box
+    when no scene_gt_info), ``"bbox_obj"`` the whole object's box clipped to the ``image_size`` (width, height)
+    image (what an amodal detector, ``detector_stage.box=bbox_obj``, gives). Instances with an empty visible box
+    get none (fully occluded: not detected)."""
+    if box not in ORACLE_BOXES:
+        raise ValueError(f"oracle box must be one of {ORACLE_BOXES}, got {box!r}")
+    if box == "bbox_obj" and image_size is None:
+        raise ValueError("oracle_targets: box='bbox_obj' needs the image_size to clip the boxes to")
     boxes, ids = [], []
     for inst in instances:
-        box = inst.bbox_visib if inst.bbox_visib is not None else inst.bbox_obj
-        if box is None or np.asarray(box)[2:].min() <= 0:
+        vis = inst.bbox_visib if inst.bbox_visib is not None else inst.bbox_obj
+        if vis is None or np.asarray(vis)[2:].min() <= 0:
             continue  # not visible at all: the oracle has no box to give (counts as not detected)
-        boxes.append(np.asarray(box, dtype=np.float32))
+        b = np.asarray(vis, dtype=np.float64)
+        if box == "bbox_obj" and inst.bbox_obj is not None:
+            full = np.asarray(inst.bbox_obj, dtype=np.float64)
+            clipped = clip_box_to_image(full[:2], full[:2] + full[2:], *image_size, min_size=0.0)
+            b = clipped if clipped is not None and clipped[2:].min() > 0 else b
+        boxes.append(b.astype(np.float32))
         ids.append(inst.obj_id)
     return {"boxes": np.asarray(boxes, np.float32).reshape(-1, 4), "obj_ids": np.asarray(ids, np.int64)}
 
@@ -244,10 +259,12 @@ def _check_resumable(out_dir: Path, run_info: dict | None, oracle: bool) -> None
 
 def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = False, batch_size: int = 1,
              max_frames: int | None = None, n_overlays: int = 6, run_info: dict | None = None, progress: bool = True,
-             extra_metrics: dict | None = None, shard: int = 0, num_shards: int = 1, merge: bool = False) -> dict:
+             extra_metrics: dict | None = None, shard: int = 0, num_shards: int = 1, merge: bool = False,
+             oracle_box: str = "bbox_visib") -> dict:
     """Evaluate ``pipeline`` on ``dataset`` (a :class:`kpd6d.data.BopDataset`); writes everything to ``out_dir``.
 
-    ``oracle``: give the detector the GT boxes (for the ``oracle`` detector). BOP19 AR_MSSD / AR_MSPD
+    ``oracle``: give the detector the GT boxes (for the ``oracle`` detector), ``oracle_box`` which
+    (:func:`oracle_targets`). BOP19 AR_MSSD / AR_MSPD
     are computed on the evaluated frames only (their targets are written to
     ``test_targets_bop19.json`` in ``out_dir``). ``extra_metrics`` (e.g. ``{"detector": {...}}``, the
     detector's own AP on the same frames) go into metrics.json and the report. Returns the metrics dict.
@@ -276,7 +293,7 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
         raise ValueError(f"{dataset!r}: no frames to evaluate")
     if num_shards > 1 and not merge:
         return _evaluate_shard(pipeline, frames, out_dir, shard, num_shards, batch_size=batch_size, oracle=oracle,
-                               run_info=run_info, progress=progress)
+                               run_info=run_info, progress=progress, oracle_box=oracle_box)
     obj_ids = sorted({i.obj_id for f in frames for i in eval_instances(f)})
     models = {m.obj_id: m for m in dataset.load_models(obj_ids)}
     points = {o: _eval_points(m) for o, m in models.items()}
@@ -289,7 +306,8 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
     _check_resumable(out_dir, run_info, oracle)
     if merge:  # the shards' predictions, checked, become this folder's predictions.jsonl
         _merge_shard_predictions(out_dir, frames, num_shards, _settings(run_info, oracle), pred_path)
-    _predict_frames(pipeline, frames, pred_path, batch_size=batch_size, oracle=oracle, progress=progress)
+    _predict_frames(pipeline, frames, pred_path, batch_size=batch_size, oracle=oracle, progress=progress,
+                    oracle_box=oracle_box)
     done = _load_done(pred_path)
 
     # errors and metrics
@@ -405,7 +423,7 @@ def _shard_dir(out_dir: Path, shard: int, num_shards: int) -> Path:
 
 
 def _predict_frames(pipeline, frames, pred_path: Path, *, batch_size: int, oracle: bool, progress: bool,
-                    desc: str = "evaluate") -> None:
+                    desc: str = "evaluate", oracle_box: str = "bbox_visib") -> None:
     """Append the predictions of every frame of ``frames`` not yet in ``pred_path`` to it, batch by batch."""
     from tqdm import tqdm
 
@@ -430,7 +448,8 @@ def _predict_frames(pipeline, frames, pred_path: Path, *, batch_size: int, oracl
             sizes = {im.shape for im in images}
             groups = [list(range(len(batch)))] if len(sizes) == 1 else [[i] for i in range(len(batch))]
             for g in groups:
-                targets = [oracle_targets(batch[i], eval_instances(batch[i])) for i in g] if oracle else None
+                targets = ([oracle_targets(batch[i], eval_instances(batch[i]), oracle_box,
+                                           (images[i].shape[1], images[i].shape[0])) for i in g] if oracle else None)
                 t0 = time.perf_counter()
                 preds = pipeline.predict_batch([images[i] for i in g], np.stack([batch[i].K for i in g]), targets)
                 dt = (time.perf_counter() - t0) / len(g)
@@ -448,7 +467,7 @@ def _predict_frames(pipeline, frames, pred_path: Path, *, batch_size: int, oracl
 
 
 def _evaluate_shard(pipeline, frames, out_dir: Path, shard: int, num_shards: int, *, batch_size: int, oracle: bool,
-                    run_info: dict | None, progress: bool) -> dict:
+                    run_info: dict | None, progress: bool, oracle_box: str = "bbox_visib") -> dict:
     """Predict shard ``shard``'s frames into its folder; write its marker ``shard.json`` when done."""
     sdir = _shard_dir(out_dir, shard, num_shards)
     sdir.mkdir(parents=True, exist_ok=True)
@@ -459,7 +478,7 @@ def _evaluate_shard(pipeline, frames, out_dir: Path, shard: int, num_shards: int
     owner = frame_shards(len(frames), batch_size, num_shards)
     mine = [f for f, o in zip(frames, owner) if o == shard]
     _predict_frames(pipeline, mine, sdir / "predictions.jsonl", batch_size=batch_size, oracle=oracle,
-                    progress=progress, desc=f"evaluate shard {shard}/{num_shards}")
+                    progress=progress, desc=f"evaluate shard {shard}/{num_shards}", oracle_box=oracle_box)
     atomic_write_json(marker, {"shard": shard, "num_shards": num_shards, "batch_size": max(1, int(batch_size)),
                                "frames_total": len(frames), "frames": [[f.scene_id, f.im_id] for f in mine],
                                "settings": _settings(run_info, oracle)})

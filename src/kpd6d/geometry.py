@@ -33,6 +33,7 @@ __all__ = [
     "check_box_inputs",
     "check_intrinsics",
     "clip_box_to_image",
+    "clip_xywh_to_image",
     "compose_poses",
     "cv_pose_to_gl_camera_pose",
     "cv_pose_to_gl_model_view",
@@ -427,6 +428,12 @@ def clip_box_to_image(lo, hi, width: int, height: int, min_size: float = MIN_BOX
     if (hi - lo).min() < min_size:
         return None
     return np.concatenate([lo, hi - lo])
+
+
+def clip_xywh_to_image(box, width: int, height: int, min_size: float = MIN_BOX_PX) -> np.ndarray | None:
+    """:func:`clip_box_to_image` of an (x, y, w, h) box (e.g. a BOP ``bbox_obj``)."""
+    b = np.asarray(box, dtype=np.float64)
+    return clip_box_to_image(b[:2], b[:2] + b[2:], width, height, min_size)
 
 
 def box_problem(box, width: int, height: int, min_size: float = MIN_BOX_PX) -> str:

@@ -220,7 +220,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
 
     from kpd6d.data import BopDataset
     from kpd6d.detection.detectors import check_detector_overrides
-    from kpd6d.evaluation.runner import evaluate
+    from kpd6d.evaluation.runner import check_oracle_box, evaluate
     from kpd6d.pipeline import PosePipeline
     from kpd6d.pnp.estimator import candidate_options, candidates_record, crop_tta_record
     from kpd6d.refinement import build_refiner
@@ -256,11 +256,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
     pipeline.set_refiner(build_refiner(to_plain(cfg.get("refiner")), lambda: ds.load_models(wanted),
                                        source=f"{ds.models_dir}"))
     oracle = str(cfg.detector_ckpt) == "oracle"
-    oracle_box = str(cfg.get("oracle_box") or "bbox_visib")
-    from kpd6d.evaluation.runner import ORACLE_BOXES
-
-    if oracle_box not in ORACLE_BOXES:
-        raise ValueError(f"oracle_box={oracle_box!r}: must be one of {', '.join(ORACLE_BOXES)}")
+    oracle_box = check_oracle_box(cfg.get("oracle_box"))
     info = {"targets": targets, "detector": str(cfg.detector_ckpt), "kpd": str(kpd_ckpt), "pnp": pnp_cfg,
             "top_l": top_l, "refine_boxes": pipeline.refine_boxes, "box_scale": pipeline.box_scale,
             **({"crop_tta": crop_tta_record(pipeline.crop_tta, pipeline.crop_tta_stability)} if pipeline.crop_tta > 1 else {}),
@@ -465,10 +461,9 @@ def run_experiment(cfg, run_dir: str | Path) -> dict:
         check_stage_config(cfg.kpd_stage, "kpd_stage")
         _kpd_networks(cfg)  # unknown names stop the run before any data is made
         _kpd_checkpoint(cfg)
-    from kpd6d.evaluation.runner import ORACLE_BOXES
+    from kpd6d.evaluation.runner import check_oracle_box
 
-    if str(cfg.evaluate.get("oracle_box") or "bbox_visib") not in ORACLE_BOXES:
-        raise ValueError(f"evaluate.oracle_box={cfg.evaluate.oracle_box!r}: must be one of {', '.join(ORACLE_BOXES)}")
+    check_oracle_box(cfg.evaluate.get("oracle_box"), "evaluate.oracle_box")
     run_dir = Path(run_dir)
     run_dir.mkdir(parents=True, exist_ok=True)
     models = load_objects(cfg.objects)

@@ -23,7 +23,7 @@ import torch
 from torch.utils.data import Dataset
 
 from kpd6d.detection.detections import DetectionInputError
-from kpd6d.geometry import clip_box_to_image
+from kpd6d.geometry import clip_xywh_to_image
 
 __all__ = ["BOX_FIELDS", "DetectionDataset", "collate_detection"]
 
@@ -81,7 +81,7 @@ class DetectionDataset(Dataset):
                 continue
             b = np.asarray(b, dtype=np.float32)
             if self.box == "bbox_obj":  # the whole object's box, clipped to the image (the part a detector can see)
-                clipped = clip_box_to_image(b[:2], b[:2] + b[2:], *image_size, min_size=0.0)
+                clipped = clip_xywh_to_image(b, *image_size, min_size=0.0)
                 if clipped is None:
                     continue
                 b = clipped.astype(np.float32)

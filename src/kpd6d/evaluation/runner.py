@@ -41,7 +41,7 @@ from kpd6d.evaluation.errors import (
 )
 from kpd6d.evaluation.recall import add_s_accuracy, auc, proj2d_accuracy, recall_at
 from kpd6d.evaluation.results_io import PoseResult, read_bop_results, write_bop_results
-from kpd6d.geometry import clip_box_to_image
+from kpd6d.geometry import clip_xywh_to_image
 from kpd6d.io import atomic_write_image, atomic_write_json, atomic_write_text, read_json
 
 __all__ = ["ADD_THRESHOLDS", "DEPTH_VISIBILITY_BANDS", "PX_THRESHOLDS", "ShardMergeError", "compute_metrics",
@@ -68,13 +68,20 @@ def eval_instances(frame) -> list:
 ORACLE_BOXES = ("bbox_visib", "bbox_obj")
 
 
+def check_oracle_box(value, key: str = "oracle_box") -> str:
+    """``value`` (None: ``"bbox_visib"``) as an :data:`ORACLE_BOXES` name; a ValueError names ``key`` otherwise."""
+    box = str(value or "bbox_visib")
+    if box not in ORACLE_BOXES:
+        raise ValueError(f"{key}={value!r}: must be one of {', '.join(ORACLE_BOXES)}")
+    return box
+
+
 def oracle_targets(frame, instances, box: str = "bbox_visib", image_size: tuple[int, int] | None = None) -> dict:
     """GT boxes of ``instances`` for the oracle detector: ``box="bbox_visib"`` the visible box (the object's box
     when no scene_gt_info), ``"bbox_obj"`` the whole object's box clipped to the ``image_size`` (width, height)
     image (what an amodal detector, ``detector_stage.box=bbox_obj``, gives). Instances with an empty visible box
     get none (fully occluded: not detected)."""
-    if box not in ORACLE_BOXES:
-        raise ValueError(f"oracle box must be one of {ORACLE_BOXES}, got {box!r}")
+    check_oracle_box(box, "oracle box")
     if box == "bbox_obj" and image_size is None:
         raise ValueError("oracle_targets: box='bbox_obj' needs the image_size to clip the boxes to")
     boxes, ids = [], []
@@ -84,8 +91,7 @@ def oracle_targets(frame, instances, box: str = "bbox_visib", image_size: tuple[
             continue  # not visible at all: the oracle has no box to give (counts as not detected)
         b = np.asarray(vis, dtype=np.float64)
         if box == "bbox_obj" and inst.bbox_obj is not None:
-            full = np.asarray(inst.bbox_obj, dtype=np.float64)
-            clipped = clip_box_to_image(full[:2], full[:2] + full[2:], *image_size, min_size=0.0)
+            clipped = clip_xywh_to_image(inst.bbox_obj, *image_size, min_size=0.0)
             b = clipped if clipped is not None and clipped[2:].min() > 0 else b
         boxes.append(b.astype(np.float32))
         ids.append(inst.obj_id)

@@ -41,7 +41,7 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
-from kpd6d.geometry import affine_apply, box_iou_xywh, clip_box_to_image, project_points
+from kpd6d.geometry import affine_apply, box_iou_xywh, clip_xywh_to_image, project_points
 from kpd6d.kpd.codec import build_codec
 
 __all__ = ["BOX_SOURCES", "VISIBILITY_MODES", "KPDCropDataset", "canonicalizer_for", "inference_crops",
@@ -205,8 +205,7 @@ class KPDCropDataset(Dataset):
         the image (its visible box when almost none of the full box is inside)."""
         if full_hw is not None:
             gt = inst.bbox_obj if inst.bbox_obj is not None else self._projected_box(frame, inst)
-            gt = np.asarray(gt, dtype=np.float64)
-            clipped = clip_box_to_image(gt[:2], gt[:2] + gt[2:], full_hw[1], full_hw[0])
+            clipped = clip_xywh_to_image(gt, full_hw[1], full_hw[0])
             if clipped is not None:
                 return clipped
         gt = inst.bbox_visib if self.box_source in ("visib", "detections") else inst.bbox_obj

@@ -33,6 +33,7 @@ from pathlib import Path
 import numpy as np
 
 from kpd6d.config import cfg_float, cfg_int, to_int
+from kpd6d.data.bop_io import DEFAULT_BOX_FIELD
 from kpd6d.io import to_plain
 
 __all__ = ["YARDSTICK_KEYS", "run_evaluation", "run_experiment", "yardstick_line", "yardstick_splits"]
@@ -264,7 +265,7 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
             "depth_calibration": _depth_calibration(cfg.get("depth_calibration", 1.0)), "device": str(pipeline.device),
             **({"refiner": pipeline.refiner.settings()} if pipeline.refiner is not None else {}),
             **({"detector_overrides": det_over} if det_over and str(cfg.detector_ckpt) != "oracle" else {}),
-            **({"oracle_box": oracle_box} if oracle and oracle_box != "bbox_visib" else {})}
+            **({"oracle_box": oracle_box} if oracle and oracle_box != DEFAULT_BOX_FIELD else {})}
     if backend != "torch":
         info.update(backend=backend, export_dir=str(cfg.export_dir))
     metrics = evaluate(pipeline, ds, out_dir, oracle=oracle, oracle_box=oracle_box,
@@ -316,7 +317,7 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
                                                        "evaluate.detector_overrides"),
         "depth_calibration": _depth_calibration(cfg.evaluate.get("depth_calibration", 1.0)),
         "refiner": to_plain(cfg.evaluate.get("refiner")),
-        "oracle_box": str(cfg.evaluate.get("oracle_box") or "bbox_visib"),
+        "oracle_box": str(cfg.evaluate.get("oracle_box") or DEFAULT_BOX_FIELD),
         "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress), **over,
     })
 

@@ -41,6 +41,8 @@ from kpd6d.io import (
 )
 
 __all__ = [
+    "BOX_FIELDS",
+    "DEFAULT_BOX_FIELD",
     "BopFormatError",
     "atomic_write_bytes",
     "atomic_write_image",
@@ -144,6 +146,11 @@ def load_scene_camera(path: str | os.PathLike) -> dict[int, dict]:
         out[im_id] = {"K": K, "depth_scale": ds}
     return out
 
+
+# the GT boxes of scene_gt_info.json a detector can be trained on and an oracle can give: the visible part's box
+# (the default: what BOP's detections and the paper's crops are) and the whole object's (amodal) box
+BOX_FIELDS = ("bbox_visib", "bbox_obj")
+DEFAULT_BOX_FIELD = "bbox_visib"
 
 _GT_INFO_FIELDS = ("bbox_obj", "bbox_visib", "px_count_all", "px_count_valid", "px_count_visib", "visib_fract")
 

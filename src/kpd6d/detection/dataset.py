@@ -22,12 +22,12 @@ import numpy as np
 import torch
 from torch.utils.data import Dataset
 
+from kpd6d.data.bop_io import BOX_FIELDS, DEFAULT_BOX_FIELD
 from kpd6d.detection.detections import DetectionInputError
 from kpd6d.geometry import clip_xywh_to_image
 
 __all__ = ["BOX_FIELDS", "DetectionDataset", "collate_detection"]
 
-BOX_FIELDS = ("bbox_visib", "bbox_obj")
 
 
 class DetectionDataset(Dataset):
@@ -36,7 +36,7 @@ class DetectionDataset(Dataset):
     ``orig_boxes`` (n, 4) xywh original px and ``frame`` (scene_id, im_id)."""
 
     def __init__(self, root: str | os.PathLike, split: str = "train", obj_ids: Sequence[int] | None = None,
-                 box: str = "bbox_visib", min_visib_fract: float = 0.1, input_size: Sequence[int] | None = (320, 240),
+                 box: str = DEFAULT_BOX_FIELD, min_visib_fract: float = 0.1, input_size: Sequence[int] | None = (320, 240),
                  min_box_size: float = 2.0, train_crop: Sequence[int] | None = None, min_kept: float = 0.3) -> None:
         from kpd6d.data import BopDataset
 

@@ -15,6 +15,8 @@ from typing import Any
 import torch
 from torch import nn
 
+from kpd6d.data.bop_io import DEFAULT_BOX_FIELD
+
 __all__ = [
     "DetectionInputError",
     "Detections",
@@ -170,7 +172,7 @@ class Detector(nn.Module):
         self.box_stats: dict | None = None  # validation box-error statistics, kept with the checkpoint
         # the GT box field it was trained on (kept with the checkpoint): "bbox_visib" (the visible part's box) or
         # "bbox_obj" (the whole object's box clipped to the image: an amodal detector); its AP is scored on the same
-        self.box_field: str = "bbox_visib"
+        self.box_field: str = DEFAULT_BOX_FIELD
         self.test_scales: tuple[float, ...] = (1.0,)  # network input sizes at inference, as factors of input_size
         self.register_buffer("_obj_id_table", torch.tensor(self.obj_ids or [], dtype=torch.long),
                              persistent=False)

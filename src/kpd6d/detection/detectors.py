@@ -18,6 +18,7 @@ from typing import Any
 
 import torch
 
+from kpd6d.data.bop_io import DEFAULT_BOX_FIELD
 from kpd6d.detection.centernet import CenterNet
 from kpd6d.detection.detections import DetectionInputError, Detector, check_test_scales
 from kpd6d.detection.oracle import OracleDetector
@@ -198,7 +199,7 @@ def load_detector(path: str | os.PathLike, obj_ids: Sequence[int] | None = None,
     # the rebuilt spec (defaults resolved) with the record's weight paths, which were not rebuilt
     det._spec["params"].update(to_plain({k: rec["params"][k] for k in _WEIGHT_PARAMS if k in rec["params"]}))
     det.box_stats = rec.get("box_stats")
-    det.box_field = rec.get("box") or "bbox_visib"  # checkpoints before the field: visible-box detectors
+    det.box_field = rec.get("box") or DEFAULT_BOX_FIELD  # checkpoints before the field: visible-box detectors
     det.set_test_scales(test_scales)
     det.to(map_location if isinstance(map_location, (str, torch.device)) else "cpu")
     return det.eval()

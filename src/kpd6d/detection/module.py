@@ -15,6 +15,7 @@ from typing import Any
 import pytorch_lightning as pl
 import torch
 
+from kpd6d.data.bop_io import DEFAULT_BOX_FIELD
 from kpd6d.detection.detectors import CHECKPOINT_KEY, detector_record
 from kpd6d.registry import DETECTORS, build_from_cfg
 
@@ -204,4 +205,4 @@ class DetectorModule(pl.LightningModule):
     def on_load_checkpoint(self, checkpoint: dict) -> None:
         rec = checkpoint.get(CHECKPOINT_KEY) or {}
         self.detector.box_stats = rec.get("box_stats")
-        self.detector.box_field = rec.get("box") or "bbox_visib"
+        self.detector.box_field = rec.get("box") or DEFAULT_BOX_FIELD

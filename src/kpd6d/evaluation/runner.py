@@ -31,6 +31,7 @@ from pathlib import Path
 
 import numpy as np
 
+from kpd6d.data.bop_io import BOX_FIELDS, DEFAULT_BOX_FIELD
 from kpd6d.evaluation.errors import (
     add_error,
     adds_error,
@@ -65,18 +66,18 @@ def eval_instances(frame) -> list:
     return out
 
 
-ORACLE_BOXES = ("bbox_visib", "bbox_obj")
+ORACLE_BOXES = BOX_FIELDS  # the boxes the oracle can give: the GT box fields (kpd6d.data.bop_io)
 
 
 def check_oracle_box(value, key: str = "oracle_box") -> str:
-    """``value`` (None: ``"bbox_visib"``) as an :data:`ORACLE_BOXES` name; a ValueError names ``key`` otherwise."""
-    box = str(value or "bbox_visib")
+    """``value`` (None: :data:`~kpd6d.data.bop_io.DEFAULT_BOX_FIELD`) as an :data:`ORACLE_BOXES` name; a ValueError names ``key`` otherwise."""
+    box = str(value or DEFAULT_BOX_FIELD)
     if box not in ORACLE_BOXES:
         raise ValueError(f"{key}={value!r}: must be one of {', '.join(ORACLE_BOXES)}")
     return box
 
 
-def oracle_targets(frame, instances, box: str = "bbox_visib", image_size: tuple[int, int] | None = None) -> dict:
+def oracle_targets(frame, instances, box: str = DEFAULT_BOX_FIELD, image_size: tuple[int, int] | None = None) -> dict:
     """GT boxes of ``instances`` for the oracle detector: ``box="bbox_visib"`` the visible box (the object's box
     when no scene_gt_info), ``"bbox_obj"`` the whole object's box clipped to the ``image_size`` (width, height)
     image (what an amodal detector, ``detector_stage.box=bbox_obj``, gives). Instances with an empty visible box
@@ -266,7 +267,7 @@ def _check_resumable(out_dir: Path, run_info: dict | None, oracle: bool) -> None
 def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = False, batch_size: int = 1,
              max_frames: int | None = None, n_overlays: int = 6, run_info: dict | None = None, progress: bool = True,
              extra_metrics: dict | None = None, shard: int = 0, num_shards: int = 1, merge: bool = False,
-             oracle_box: str = "bbox_visib") -> dict:
+             oracle_box: str = DEFAULT_BOX_FIELD) -> dict:
     """Evaluate ``pipeline`` on ``dataset`` (a :class:`kpd6d.data.BopDataset`); writes everything to ``out_dir``.
 
     ``oracle``: give the detector the GT boxes (for the ``oracle`` detector), ``oracle_box`` which
@@ -429,7 +430,7 @@ def _shard_dir(out_dir: Path, shard: int, num_shards: int) -> Path:
 
 
 def _predict_frames(pipeline, frames, pred_path: Path, *, batch_size: int, oracle: bool, progress: bool,
-                    desc: str = "evaluate", oracle_box: str = "bbox_visib") -> None:
+                    desc: str = "evaluate", oracle_box: str = DEFAULT_BOX_FIELD) -> None:
     """Append the predictions of every frame of ``frames`` not yet in ``pred_path`` to it, batch by batch."""
     from tqdm import tqdm
 
@@ -473,7 +474,7 @@ def _predict_frames(pipeline, frames, pred_path: Path, *, batch_size: int, oracl
 
 
 def _evaluate_shard(pipeline, frames, out_dir: Path, shard: int, num_shards: int, *, batch_size: int, oracle: bool,
-                    run_info: dict | None, progress: bool, oracle_box: str = "bbox_visib") -> dict:
+                    run_info: dict | None, progress: bool, oracle_box: str = DEFAULT_BOX_FIELD) -> dict:
     """Predict shard ``shard``'s frames into its folder; write its marker ``shard.json`` when done."""
     sdir = _shard_dir(out_dir, shard, num_shards)
     sdir.mkdir(parents=True, exist_ok=True)

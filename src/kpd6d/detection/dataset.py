@@ -26,8 +26,7 @@ from kpd6d.data.bop_io import BOX_FIELDS, DEFAULT_BOX_FIELD
 from kpd6d.detection.detections import DetectionInputError
 from kpd6d.geometry import clip_xywh_to_image
 
-__all__ = ["BOX_FIELDS", "DetectionDataset", "collate_detection"]
-
+__all__ = ["DetectionDataset", "collate_detection"]
 
 
 class DetectionDataset(Dataset):

@@ -66,14 +66,11 @@ def eval_instances(frame) -> list:
     return out
 
 
-ORACLE_BOXES = BOX_FIELDS  # the boxes the oracle can give: the GT box fields (kpd6d.data.bop_io)
-
-
 def check_oracle_box(value, key: str = "oracle_box") -> str:
-    """``value`` (None: :data:`~kpd6d.data.bop_io.DEFAULT_BOX_FIELD`) as an :data:`ORACLE_BOXES` name; a ValueError names ``key`` otherwise."""
+    """``value`` (None: :data:`~kpd6d.data.bop_io.DEFAULT_BOX_FIELD`) as a GT box field (:data:`~kpd6d.data.bop_io.BOX_FIELDS`); a ValueError names ``key`` otherwise."""
     box = str(value or DEFAULT_BOX_FIELD)
-    if box not in ORACLE_BOXES:
-        raise ValueError(f"{key}={value!r}: must be one of {', '.join(ORACLE_BOXES)}")
+    if box not in BOX_FIELDS:
+        raise ValueError(f"{key}={value!r}: must be one of {', '.join(BOX_FIELDS)}")
     return box
 
 

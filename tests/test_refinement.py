@@ -8,7 +8,7 @@ import pytest
 
 from kpd6d.geometry import LINEMOD_K, pose_from_view, rotation_about_axis, rotation_error_deg
 from kpd6d.objects import procedural_objects
-from kpd6d.refinement import RegionRefineConfig, RegionRefiner, build_refiner
+from kpd6d.refinement import RegionRefineConfig, RegionRefiner, build_refiner, cover_box
 from kpd6d.registry import REFINERS, UnknownNameError
 
 
@@ -222,3 +222,43 @@ def test_histogram_margins_leave_the_bands_beside_the_edge_out(fg_margin, bg_mar
     assert (outer < 0.01) if bg_margin < 2 else (outer == pytest.approx(0.5, abs=1e-3))
     with pytest.raises(ValueError, match="fg_margin"):
         RegionRefineConfig(fg_margin=-1)
+
+
+def test_cover_box_brings_a_too_far_pose_up_to_the_rendered_silhouettes_box(scene_renderer):
+    """The box is the rendered mask's (not a projection of the same points): a pose 15 % too far comes back
+    to the true depth within the mask's pixel quantisation; one too near, or at the truth, stays."""
+    model = procedural_objects(obj_ids=[3])[0]
+    R, t = pose_from_view(0.7, 0.5, 650.0, 0.3)
+    t = t + np.array([30.0, -20.0, 0.0])
+    mask = scene_renderer.render([(model, R, t)]).depth > 0
+    ys, xs = np.nonzero(mask)
+    box = np.array([xs.min(), ys.min(), xs.max() + 1 - xs.min(), ys.max() + 1 - ys.min()], np.float64)
+    t_far, f = cover_box(model.vertices, R, t * 1.15, LINEMOD_K, box, mask.shape)
+    assert f < 1 and abs(t_far[2] / t[2] - 1) < 0.01
+    assert np.allclose(np.cross(t_far, t), 0, atol=1e-6 * t[2] ** 2)  # along the estimate's ray
+    for near in (0.9, 1.0 - 0.015):
+        t_near, f = cover_box(model.vertices, R, t * near, LINEMOD_K, box, mask.shape)
+        assert f == 1.0 and np.array_equal(t_near, t * near)
+    assert cover_box(model.vertices, R, t * 1.15, LINEMOD_K, [10, 10, 0, 5], mask.shape)[1] == 1.0  # empty box
+    assert cover_box(model.vertices, R, -t, LINEMOD_K, box, mask.shape)[1] == 1.0  # behind the camera
+
+
+@pytest.mark.parametrize("when", ["before", "after"])
+def test_refine_poses_covers_the_detection_box(when):
+    """``cover_box``: a pose too small for its box moves closer (recorded in ``cover_factor``), one without a
+    box stays; on an image with no evidence the region steps change nothing, so both orders give the same."""
+    from kpd6d.geometry import project_points
+
+    model = procedural_objects(obj_ids=[1])[0]
+    R, t = pose_from_view(0.7, 0.5, 650.0, 0.3)
+    uv = project_points(model.vertices, LINEMOD_K, R, t)
+    box = np.concatenate([uv.min(0), uv.max(0) - uv.min(0)])
+    flat = np.full((480, 640, 3), 128, np.uint8)
+    ref = RegionRefiner(RegionRefineConfig(cover_box=when), models={1: model})
+    poses = [[{"obj_id": 1, "R": R, "t": t * 1.2, "ok": True, "box": box},
+              {"obj_id": 1, "R": R, "t": t * 1.2, "ok": True}]]
+    boxed, unboxed = ref.refine_poses([flat], LINEMOD_K[None], poses)[0]
+    assert boxed["refined"] and np.allclose(boxed["t"], t, rtol=1e-3) and boxed["cover_factor"] == pytest.approx(1 / 1.2, rel=1e-3)
+    assert not unboxed["refined"] and np.array_equal(unboxed["t"], t * 1.2) and "cover_factor" not in unboxed
+    with pytest.raises(ValueError, match="cover_box must be one of none, before, after, got 'always'"):
+        RegionRefineConfig(cover_box="always")

@@ -34,7 +34,10 @@ import numpy as np
 from kpd6d.geometry import backproject, project_points, rotation_about_axis
 from kpd6d.registry import REFINERS, build_from_cfg
 
-__all__ = ["RefineResult", "RegionRefineConfig", "RegionRefiner", "build_refiner"]
+__all__ = ["COVER_BOX", "RefineResult", "RegionRefineConfig", "RegionRefiner", "build_refiner", "cover_box"]
+
+#: ``RegionRefineConfig.cover_box``: when the pose is brought up to its box (see :func:`cover_box`)
+COVER_BOX = ("none", "before", "after")
 
 
 @dataclass(frozen=True)
@@ -72,8 +75,11 @@ class RegionRefineConfig:
     ring: float = 0.15  # background ring width, as a fraction of the projected diameter
     occlusion: bool = False  # the image's other estimated objects mask the line samples they cover
     edge_offset: float = 0.5  # viewport px from a contour pixel's centre out to where the silhouette's edge is taken
+    cover_box: str = "none"  # none | before | after the region steps: a pose too small for its box moves closer (cover_box())
 
     def __post_init__(self) -> None:
+        if self.cover_box not in COVER_BOX:
+            raise ValueError(f"region refinement: cover_box must be one of {', '.join(COVER_BOX)}, got {self.cover_box!r}")
         object.__setattr__(self, "scales", tuple(float(v) for v in self.scales))
         if not self.scales or any(not (s > 0) for s in self.scales):
             raise ValueError(f"region refinement: scales must be positive fractions of the projected diameter, got {self.scales}")
@@ -92,6 +98,38 @@ class RegionRefineConfig:
                 raise ValueError(f"region refinement: {name} must be > 0, got {getattr(self, name)}")
         if not (0 <= self.edge_offset <= 1):
             raise ValueError(f"region refinement: edge_offset must lie in [0, 1] (viewport px), got {self.edge_offset}")
+
+
+def cover_box(points, R, t, K, box, image_size, iterations: int = 3) -> tuple[np.ndarray, float]:
+    """The translation ``t`` (3,) mm scaled along its ray (``t * f``, ``f <= 1``) so that ``points`` (N, 3) mm
+    of the object, posed by (``R``, ``t``) and projected by ``K``, cover ``box`` (4,) xywh px in width and in
+    height, both clipped to the image (``image_size`` = (H, W)). Returns ``(t * f, f)``; ``f = 1`` when the
+    projection covers the box already, or when it cannot be measured (points behind the camera, nothing
+    of it left in the image, an empty box).
+
+    The projected size goes as about ``1 / depth``: ``f`` is multiplied by the smallest ratio of projected
+    to box side up to ``iterations`` times (a fixed point, following the perspective of a near, deep object);
+    it never goes above 1 nor below a quarter (a box far larger than the object says more about the box than about the depth).
+    """
+    H, W = int(image_size[0]), int(image_size[1])
+    t = np.asarray(t, np.float64).reshape(3)
+    b = np.asarray(box, np.float64).reshape(4)
+    want = np.minimum(b[:2] + b[2:], [W, H]) - np.maximum(b[:2], 0.0)
+    if not (np.isfinite(want).all() and (want > 0).all()):
+        return t, 1.0
+    f = 1.0
+    for _ in range(int(iterations)):
+        uv, z = project_points(points, K, R, t * f, return_depth=True)
+        if not (z > 0).all() or not np.isfinite(uv).all():
+            break
+        size = np.clip(uv.max(0), 0, [W, H]) - np.clip(uv.min(0), 0, [W, H])
+        if not (size > 0).all():
+            break
+        ratio = float((size / want).min())
+        if (f == 1.0 and ratio >= 1.0) or abs(ratio - 1.0) < 1e-4:
+            break
+        f = min(1.0, max(0.25, f * ratio))
+    return t * f, f
 
 
 @dataclass
@@ -178,6 +216,8 @@ class RegionRefiner:
                 if oid not in self.models:
                     raise KeyError(f"pose refinement: no mesh for object {oid} ({self.models_source} has "
                                    f"{sorted(self.models) or 'none'})")
+            if self.config.cover_box == "before":
+                self._cover_boxes(todo, Ks[b], image.shape[:2])
             for p in todo:
                 others = [(self.models[int(q["obj_id"])], q["R"], q["t"]) for q in todo
                           if q is not p] if self.config.occlusion else ()
@@ -185,7 +225,20 @@ class RegionRefiner:
                 p["evidence"] = res.evidence
                 if res.ok:
                     p["R"], p["t"], p["refined"] = res.R, res.t, True
+            if self.config.cover_box == "after":
+                self._cover_boxes(todo, Ks[b], image.shape[:2])
         return poses
+
+    def _cover_boxes(self, poses: list[dict], K, image_size) -> None:
+        """:func:`cover_box` on each pose dict with a ``box``, in place; ``cover_factor`` records its f."""
+        for p in poses:
+            if p.get("box") is None:
+                continue
+            model = self.models[int(p["obj_id"])]
+            p["t"], p["cover_factor"] = cover_box(model.vertices, np.asarray(p["R"], np.float64), p["t"], K,
+                                                  p["box"], image_size)
+            if p["cover_factor"] < 1.0:
+                p["refined"] = True
 
     @property
     def renderer(self):

@@ -262,3 +262,23 @@ def test_refine_poses_covers_the_detection_box(when):
     assert not unboxed["refined"] and np.array_equal(unboxed["t"], t * 1.2) and "cover_factor" not in unboxed
     with pytest.raises(ValueError, match="cover_box must be one of none, before, after, got 'always'"):
         RegionRefineConfig(cover_box="always")
+
+
+def test_depth_hypotheses_keep_the_start_whose_refinement_the_image_confirms_most(scene_renderer):
+    """From 40 % too far one start alone stays short of the truth; with a second start at the true depth the
+    kept refinement is that one (the most evidence), and the first factor alone equals plain refinement."""
+    model = procedural_objects(obj_ids=[3])[0]
+    image, R, t = _scene(scene_renderer, model)
+    far = t * 1.4
+    single = RegionRefiner(models={3: model})
+    both = RegionRefiner(RegionRefineConfig(depth_hypotheses=(1.0, 1 / 1.4)), models={3: model})
+    one = single.refine_poses([image], LINEMOD_K[None], [[{"obj_id": 3, "R": R, "t": far, "ok": True}]])[0][0]
+    two = both.refine_poses([image], LINEMOD_K[None], [[{"obj_id": 3, "R": R, "t": far, "ok": True}]])[0][0]
+    err_one, err_two = np.linalg.norm(one["t"] - t), np.linalg.norm(two["t"] - t)
+    assert err_two < 5.0 < err_one and two["evidence"] > one["evidence"]
+    plain = single.refine(image, model, R, far, LINEMOD_K)
+    assert np.allclose(one["t"], plain.t) and one["evidence"] == plain.evidence
+    with pytest.raises(ValueError, match=r"depth_hypotheses must be factors in \[0.5, 2\]"):
+        RegionRefineConfig(depth_hypotheses=(1.0, 3.0))
+    single.close()
+    both.close()

@@ -56,7 +56,15 @@ class RegionRefineConfig:
     lines than this and the input pose is kept. ``viewport``: side of the silhouette render. ``occlusion``: in :meth:`RegionRefiner.refine_poses`,
     the other objects estimated in the same image (at their current poses) are rendered too, and line
     samples where one of them lies in front of the object's contour (by more than 5 % of the object's
-    diameter) carry no evidence, nor do the pixels they cover in the foreground histogram.
+    diameter) carry no evidence, nor do the pixels they cover in the foreground histogram. ``cover_box``:
+    in :meth:`RegionRefiner.refine_poses`, each pose whose object, projected, is narrower or shorter than the
+    box it was estimated from (the pose dict's ``box``: the detection) moves along its ray toward the camera
+    until it covers the box (:func:`cover_box`), ``before`` or ``after`` the region steps (``none``: never).
+    A detection box holds the object's visible part, so the whole object projected at the true pose covers
+    it; an estimate that does not is too far. ``depth_hypotheses``: in :meth:`RegionRefiner.refine_poses` each
+    pose is refined once from its translation times each factor (along its ray), and the refinement with the
+    most ``evidence`` is kept (the first on a tie; refinements without enough evidence do not compete): a
+    wider basin in depth, the quantity keypoints measure worst.
     """
 
     scales: tuple[float, ...] = (0.25, 0.18, 0.12, 0.09, 0.07, 0.06)
@@ -76,8 +84,13 @@ class RegionRefineConfig:
     occlusion: bool = False  # the image's other estimated objects mask the line samples they cover
     edge_offset: float = 0.5  # viewport px from a contour pixel's centre out to where the silhouette's edge is taken
     cover_box: str = "none"  # none | before | after the region steps: a pose too small for its box moves closer (cover_box())
+    depth_hypotheses: tuple[float, ...] = (1.0,)  # refine from the translation times each; keep the most evidence
 
     def __post_init__(self) -> None:
+        object.__setattr__(self, "depth_hypotheses", tuple(float(v) for v in self.depth_hypotheses))
+        if not self.depth_hypotheses or any(not (0.5 <= f <= 2.0) for f in self.depth_hypotheses):
+            raise ValueError(f"region refinement: depth_hypotheses must be factors in [0.5, 2] on the estimated "
+                             f"translation, got {self.depth_hypotheses}")
         if self.cover_box not in COVER_BOX:
             raise ValueError(f"region refinement: cover_box must be one of {', '.join(COVER_BOX)}, got {self.cover_box!r}")
         object.__setattr__(self, "scales", tuple(float(v) for v in self.scales))
@@ -221,13 +234,27 @@ class RegionRefiner:
             for p in todo:
                 others = [(self.models[int(q["obj_id"])], q["R"], q["t"]) for q in todo
                           if q is not p] if self.config.occlusion else ()
-                res = self.refine(image, self.models[int(p["obj_id"])], p["R"], p["t"], Ks[b], others=others)
+                res = self._refine_hypotheses(image, self.models[int(p["obj_id"])], p["R"], p["t"], Ks[b], others)
                 p["evidence"] = res.evidence
                 if res.ok:
                     p["R"], p["t"], p["refined"] = res.R, res.t, True
             if self.config.cover_box == "after":
                 self._cover_boxes(todo, Ks[b], image.shape[:2])
         return poses
+
+    def _refine_hypotheses(self, image, model, R, t, K, others=()) -> RefineResult:
+        """:meth:`refine` from ``t`` times each of ``depth_hypotheses``: the ok result with the most evidence
+        (the first on a tie), else the input pose (not ok, with the first factor's evidence)."""
+        t = np.asarray(t, np.float64).reshape(3)
+        best = first = None
+        for f in self.config.depth_hypotheses:
+            res = self.refine(image, model, R, t * f, K, others=others)
+            first = first or res
+            if res.ok and (best is None or res.evidence > best.evidence):
+                best = res
+        if best is None:
+            return RefineResult(R=np.asarray(R, np.float64), t=t, ok=False, lines=first.lines, evidence=first.evidence)
+        return best
 
     def _cover_boxes(self, poses: list[dict], K, image_size) -> None:
         """:func:`cover_box` on each pose dict with a ``box``, in place; ``cover_factor`` records its f."""

@@ -244,17 +244,10 @@ class RegionRefiner:
 
     def _refine_hypotheses(self, image, model, R, t, K, others=()) -> RefineResult:
         """:meth:`refine` from ``t`` times each of ``depth_hypotheses``: the ok result with the most evidence
-        (the first on a tie), else the input pose (not ok, with the first factor's evidence)."""
+        (the first on a tie), else the first factor's (not ok: the caller keeps its input pose)."""
         t = np.asarray(t, np.float64).reshape(3)
-        best = first = None
-        for f in self.config.depth_hypotheses:
-            res = self.refine(image, model, R, t * f, K, others=others)
-            first = first or res
-            if res.ok and (best is None or res.evidence > best.evidence):
-                best = res
-        if best is None:
-            return RefineResult(R=np.asarray(R, np.float64), t=t, ok=False, lines=first.lines, evidence=first.evidence)
-        return best
+        results = [self.refine(image, model, R, t * f, K, others=others) for f in self.config.depth_hypotheses]
+        return max((r for r in results if r.ok), key=lambda r: r.evidence, default=results[0])
 
     def _cover_boxes(self, poses: list[dict], K, image_size) -> None:
         """:func:`cover_box` on each pose dict with a ``box``, in place; ``cover_factor`` records its f."""

@@ -214,7 +214,8 @@ def test_histogram_margins_leave_the_bands_beside_the_edge_out(fg_margin, bg_mar
     img[38:82, 38:82] = (0, 0, 200)            # outer band: image px 38-39 and 80-81 ...
     img[40:80, 40:80] = (200, 0, 0)            # ... inner band 40-41 and 78-79
     img[42:78, 42:78] = (0, 200, 0)            # object
-    pf, sil_img = ref._posterior(img, sil, A, diameter_px=40.0)
+    pf, sil_img, origin = ref._posterior(img, sil, A, diameter_px=40.0)
+    assert origin == (0, 0) and pf.shape == (H, W)  # no reach: the whole image
     assert sil_img[40:80, 40:80].all() and not sil_img[39, 50] and not sil_img[80, 50]
     inner, outer, obj = pf[41, 60], pf[38, 60], pf[60, 60]
     assert obj > 0.99 and pf[5, 5] < 0.01
@@ -222,6 +223,35 @@ def test_histogram_margins_leave_the_bands_beside_the_edge_out(fg_margin, bg_mar
     assert (outer < 0.01) if bg_margin < 2 else (outer == pytest.approx(0.5, abs=1e-3))
     with pytest.raises(ValueError, match="fg_margin"):
         RegionRefineConfig(fg_margin=-1)
+
+
+def test_posterior_window_holds_the_whole_images_values(scene_renderer):
+    """The posterior on a window around the silhouette (``reach`` px past its box besides the ring) equals the
+    whole image's there, hidden pixels and all; and refinement on windows gives the whole image's poses, bit for bit."""
+    model = procedural_objects(obj_ids=[3])[0]
+    image, R, t = _scene(scene_renderer, model)
+    ref = RegionRefiner()
+    s = ref.config.viewport
+    sil = np.zeros((s, s), np.uint8)
+    sil[60:130, 50:120] = 1
+    hidden = np.zeros_like(sil, bool)
+    hidden[60:80, 50:120] = True
+    A = np.array([[0.6, 0.0, 250.0], [0.0, 0.6, 180.0]])  # viewport px -> image px
+    full, sil_full, o_full = ref._posterior(image, sil, A, 45.0, hidden)
+    win, sil_win, (x0, y0) = ref._posterior(image, sil, A, 45.0, hidden, reach=20.0)
+    assert o_full == (0, 0) and win.shape[0] < 480 / 2 and win.shape[1] < 640 / 2
+    # the window: the silhouette's image box [280, 322) x [216, 258) grown by the reach and 3 px
+    assert (x0, y0) == (280 - 23, 216 - 23)
+    np.testing.assert_array_equal(win, full[y0:y0 + win.shape[0], x0:x0 + win.shape[1]])
+    np.testing.assert_array_equal(sil_win, sil_full[y0:y0 + win.shape[0], x0:x0 + win.shape[1]])
+    assert sil_full.sum() == sil_win.sum() > 0
+    R0, t0 = _perturbed(R, t)
+    windowed = ref.refine(image, model, R0, t0, LINEMOD_K)
+    ref._full_frame = True
+    whole = ref.refine(image, model, R0, t0, LINEMOD_K)
+    assert windowed.ok and np.array_equal(windowed.R, whole.R) and np.array_equal(windowed.t, whole.t)
+    assert windowed.evidence == whole.evidence and rotation_error_deg(windowed.R, R) < 2.0
+    ref.close()
 
 
 def test_cover_box_brings_a_too_far_pose_up_to_the_rendered_silhouettes_box(scene_renderer):

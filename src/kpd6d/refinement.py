@@ -197,6 +197,7 @@ class RegionRefiner:
         if models is not None:
             self.set_models(models)
         self._renderer = renderer
+        self._full_frame = False  # True: the posterior on the whole image (tests: the window changes nothing)
 
     def set_models(self, models: Mapping[int, Any] | Any, source: str | None = None) -> None:
         """obj_id -> :class:`~kpd6d.objects.ObjectModel` (a mapping, or a list of models)."""
@@ -321,34 +322,53 @@ class RegionRefiner:
             occ = np.where(res.masks_visib[0], 0.0, res.depth).astype(np.float32)  # the front-most other object
         return X, nv, self.config.edge_offset / a, (mask, A, a), occ
 
-    def _posterior(self, image, mask, A, diameter_px, hidden=None):
-        """Per-pixel foreground posterior on the image (float32, H x W), from colour histograms of the
-        silhouette (eroded; less the ``hidden`` viewport pixels) and a ring around it."""
+    def _posterior(self, image, mask, A, diameter_px, hidden=None, reach=None):
+        """Per-pixel foreground posterior (float32), from colour histograms of the silhouette (eroded; less
+        the ``hidden`` viewport pixels) and a ring around it, the silhouette in image pixels (bool), and
+        their window's origin (x0, y0) in the image. ``reach``: px beyond the silhouette's box the window
+        must cover besides the ring (None: the whole image). The window holds every pixel the histograms
+        count, so the values are the whole image's there."""
         import cv2
 
         H, W = image.shape[:2]
-        sil = cv2.warpAffine(mask * 255, A, (W, H), flags=cv2.INTER_LINEAR) > 127
         ring = max(3, round(self.config.ring * diameter_px))
+        a = 1.0 / A[0, 0]  # A: viewport px -> image px, a scale and a shift
+        if reach is None:
+            x0, y0, x1, y1 = 0, 0, W, H
+        else:
+            bx, by, bw, bh = cv2.boundingRect(mask)
+            m = max(ring + self.config.bg_margin, reach) + 3
+            x0 = max(0, int(np.floor(bx / a + A[0, 2] - m)))
+            y0 = max(0, int(np.floor(by / a + A[1, 2] - m)))
+            x1 = min(W, int(np.ceil((bx + bw) / a + A[0, 2] + m)) + 1)
+            y1 = min(H, int(np.ceil((by + bh) / a + A[1, 2] + m)) + 1)
+            if x1 <= x0 or y1 <= y0:
+                return None, np.zeros((max(y1 - y0, 0), max(x1 - x0, 0)), bool), (x0, y0)
+        # image pixel -> viewport coordinates, from the pixel's absolute position (the same for any window)
+        mx = np.broadcast_to(((np.arange(x0, x1) - A[0, 2]) * a).astype(np.float32), (y1 - y0, x1 - x0))
+        my = np.broadcast_to(((np.arange(y0, y1) - A[1, 2]) * a).astype(np.float32)[:, None], (y1 - y0, x1 - x0))
+        mx, my = np.ascontiguousarray(mx), np.ascontiguousarray(my)
+        sil = cv2.remap(mask * 255, mx, my, cv2.INTER_LINEAR) > 127
         k3 = np.ones((3, 3), np.uint8)
         fg = cv2.erode(sil.astype(np.uint8), k3, iterations=self.config.fg_margin) > 0  # 0 iterations: a copy
         if hidden is not None:
-            fg &= ~(cv2.warpAffine(hidden.astype(np.uint8) * 255, A, (W, H), flags=cv2.INTER_NEAREST) > 127)
+            fg &= ~(cv2.remap(hidden.astype(np.uint8) * 255, mx, my, cv2.INTER_NEAREST) > 127)
         grown = cv2.dilate(sil.astype(np.uint8), cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (2 * ring + 1,) * 2)) > 0
         near = cv2.dilate(sil.astype(np.uint8), k3, iterations=self.config.bg_margin) > 0
         bg = grown & ~near
         b = self.config.hist_bins
         shift = 8 - int(np.log2(b))
-        q = (image >> shift).astype(np.int32)
+        q = (image[y0:y1, x0:x1] >> shift).astype(np.int32)
         code = (q[..., 0] * b + q[..., 1]) * b + q[..., 2]
         n = b ** 3
         hf = np.bincount(code[fg], minlength=n).astype(np.float64)
         hb = np.bincount(code[bg], minlength=n).astype(np.float64)
         if hf.sum() < 10 or hb.sum() < 10:
-            return None, sil
+            return None, sil, (x0, y0)
         hf = hf / hf.sum() + 1e-6
         hb = hb / hb.sum() + 1e-6
         pf = (hf / (hf + hb)).astype(np.float32)
-        return pf[code], sil
+        return pf[code], sil, (x0, y0)
 
     def refine(self, image: np.ndarray, model, R, t, K, others=()) -> RefineResult:
         """Refine the pose (R, t: model -> OpenCV camera, mm) of ``model`` in ``image``; ``others``:
@@ -377,19 +397,23 @@ class RegionRefiner:
             if got is None:
                 break
             X, nv, edge, (mask, A, a), occ = got
+            step = max(cfg.min_step, scale * diameter_px / L)
+            kk = round(step) | 1 if step > 1.5 else 1  # each sample stands for its stretch of the line
+            # the posterior on a window that holds the lines and the blur around them (the whole image: the same)
+            reach = None if self._full_frame else L * step + abs(edge) + kk // 2 + 2
             # inside the silhouette, where another object is the front-most: not this object's colours
-            pf, sil = self._posterior(image, mask, A, diameter_px, None if occ is None else (occ > 0) & (mask > 0))
+            pf, sil, (ox, oy) = self._posterior(image, mask, A, diameter_px,
+                                                None if occ is None else (occ > 0) & (mask > 0), reach)
             if pf is None:
                 break
-            step = max(cfg.min_step, scale * diameter_px / L)
-            if step > 1.5:  # each sample stands for its stretch of the line
-                kk = round(step) | 1
+            if kk > 1:
                 pf = cv2.blur(pf, (kk, kk))
             base = project_points(X, K) + edge * nv
             pos = base[:, None, :] + (s_grid[None, :, None] * step) * nv[:, None, :]  # (n, 2L+1, 2)
             inside_img = (pos[..., 0] >= 0) & (pos[..., 0] <= W - 1) & (pos[..., 1] >= 0) & (pos[..., 1] <= H - 1)
-            mx = np.clip(pos[..., 0], 0, W - 1).astype(np.float32)
-            my = np.clip(pos[..., 1], 0, H - 1).astype(np.float32)
+            # window coordinates: the image's float32 ones less an integer (exact, so the same samples)
+            mx = np.clip(np.clip(pos[..., 0], 0, W - 1).astype(np.float32) - np.float32(ox), 0, pf.shape[1] - 1)
+            my = np.clip(np.clip(pos[..., 1], 0, H - 1).astype(np.float32) - np.float32(oy), 0, pf.shape[0] - 1)
             p = cv2.remap(pf, mx, my, cv2.INTER_LINEAR)
             # inner samples past the far side of the silhouette see background again: not this edge's
             on_sil = cv2.remap(sil.astype(np.float32), mx, my, cv2.INTER_NEAREST) > 0.5

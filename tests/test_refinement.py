@@ -312,3 +312,32 @@ def test_depth_hypotheses_keep_the_start_whose_refinement_the_image_confirms_mos
         RegionRefineConfig(depth_hypotheses=(1.0, 3.0))
     single.close()
     both.close()
+
+
+def test_roll_hypotheses_recover_an_in_plane_turn_the_prior_holds_back(scene_renderer):
+    """A start turned 45 degrees about its line of sight: one refinement, held by the rotation prior, stays
+    turned; with roll starts of -45 / +45 degrees the kept one is the unturned pose (the most evidence).
+    A roll start turns the object about its own centre, which stays where it was."""
+    from kpd6d.geometry import project_points
+
+    model = procedural_objects(obj_ids=[3])[0]
+    image, R, t = _scene(scene_renderer, model)
+    centre = np.asarray(model.mesh.bounds).mean(0)
+    c = R @ centre + t
+    axis = c / np.linalg.norm(c)
+    Q = rotation_about_axis(axis, np.radians(45.0))
+    R0, t0 = Q @ R, Q @ (t - c) + c
+    np.testing.assert_allclose(R0 @ centre + t0, c, atol=1e-9)
+    np.testing.assert_allclose(project_points(centre[None], LINEMOD_K, R0, t0), project_points(centre[None], LINEMOD_K, R, t), atol=1e-9)
+    single = RegionRefiner(models={3: model})
+    rolled = RegionRefiner(RegionRefineConfig(roll_hypotheses=(-45.0, 45.0)), models={3: model})
+    one = single.refine_poses([image], LINEMOD_K[None], [[{"obj_id": 3, "R": R0, "t": t0, "ok": True}]])[0][0]
+    best = rolled.refine_poses([image], LINEMOD_K[None], [[{"obj_id": 3, "R": R0, "t": t0, "ok": True}]])[0][0]
+    assert rotation_error_deg(one["R"], R) > 10.0 > 2.0 > rotation_error_deg(best["R"], R)
+    assert best["evidence"] > one["evidence"] and np.linalg.norm(best["t"] - t) < 5.0
+    assert rolled.settings()["roll_hypotheses"] == [-45.0, 45.0]
+    for bad in ((0.0,), (120.0,)):
+        with pytest.raises(ValueError, match=r"roll_hypotheses must be non-zero angles in \[-90, 90\]"):
+            RegionRefineConfig(roll_hypotheses=bad)
+    single.close()
+    rolled.close()

@@ -64,7 +64,10 @@ class RegionRefineConfig:
     it; an estimate that does not is too far. ``depth_hypotheses``: in :meth:`RegionRefiner.refine_poses` each
     pose is refined once from its translation times each factor (along its ray), and the refinement with the
     most ``evidence`` is kept (the first on a tie; refinements without enough evidence do not compete): a
-    wider basin in depth, the quantity keypoints measure worst.
+    wider basin in depth, the quantity keypoints measure worst. ``roll_hypotheses``: further starts, each the
+    pose turned by that many degrees about the line of sight through the object's centre (at the estimated
+    depth), competing with the depth hypotheses in the same way: a wider basin for the in-plane rotation,
+    which the tight rotation prior otherwise barely moves.
     """
 
     scales: tuple[float, ...] = (0.25, 0.18, 0.12, 0.09, 0.07, 0.06)
@@ -85,12 +88,17 @@ class RegionRefineConfig:
     edge_offset: float = 0.5  # viewport px from a contour pixel's centre out to where the silhouette's edge is taken
     cover_box: str = "none"  # none | before | after the region steps: a pose too small for its box moves closer (cover_box())
     depth_hypotheses: tuple[float, ...] = (1.0,)  # refine from the translation times each; keep the most evidence
+    roll_hypotheses: tuple[float, ...] = ()  # degrees about the line of sight: more starts competing the same way
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "depth_hypotheses", tuple(float(v) for v in self.depth_hypotheses))
         if not self.depth_hypotheses or any(not (0.5 <= f <= 2.0) for f in self.depth_hypotheses):
             raise ValueError(f"region refinement: depth_hypotheses must be factors in [0.5, 2] on the estimated "
                              f"translation, got {self.depth_hypotheses}")
+        object.__setattr__(self, "roll_hypotheses", tuple(float(v) for v in self.roll_hypotheses))
+        if any(not (-90.0 <= r <= 90.0) or r == 0.0 for r in self.roll_hypotheses):
+            raise ValueError(f"region refinement: roll_hypotheses must be non-zero angles in [-90, 90] degrees (the "
+                             f"unturned start is the depth hypotheses'), got {self.roll_hypotheses}")
         if self.cover_box not in COVER_BOX:
             raise ValueError(f"region refinement: cover_box must be one of {', '.join(COVER_BOX)}, got {self.cover_box!r}")
         object.__setattr__(self, "scales", tuple(float(v) for v in self.scales))
@@ -244,10 +252,19 @@ class RegionRefiner:
         return poses
 
     def _refine_hypotheses(self, image, model, R, t, K, others=()) -> RefineResult:
-        """:meth:`refine` from ``t`` times each of ``depth_hypotheses``: the ok result with the most evidence
-        (the first on a tie), else the first factor's (not ok: the caller keeps its input pose)."""
+        """:meth:`refine` from ``t`` times each of ``depth_hypotheses`` and from the pose turned by each of
+        ``roll_hypotheses`` about its line of sight: the ok result with the most evidence (the first on a tie),
+        else the first start's (not ok: the caller keeps its input pose)."""
+        R = np.asarray(R, np.float64)
         t = np.asarray(t, np.float64).reshape(3)
-        results = [self.refine(image, model, R, t * f, K, others=others) for f in self.config.depth_hypotheses]
+        starts = [(R, t * f) for f in self.config.depth_hypotheses]
+        if self.config.roll_hypotheses:
+            c = R @ np.asarray(model.mesh.bounds, np.float64).mean(0) + t  # the object's centre, camera frame
+            axis = c / max(float(np.linalg.norm(c)), 1e-9)
+            for deg in self.config.roll_hypotheses:
+                Q = _so3_exp(axis * np.radians(deg))
+                starts.append((Q @ R, Q @ (t - c) + c))  # turned about the centre: it stays where it was
+        results = [self.refine(image, model, R0, t0, K, others=others) for R0, t0 in starts]
         return max((r for r in results if r.ok), key=lambda r: r.evidence, default=results[0])
 
     def _cover_boxes(self, poses: list[dict], K, image_size) -> None:

@@ -163,6 +163,11 @@ class RefineResult:
     history: list = field(default_factory=list)  # (R, t) after each step
 
 
+def _box_centre(model) -> np.ndarray:
+    """The centre of the model's bounding box (model frame, mm): the point the refiner's steps turn about."""
+    return np.asarray(model.mesh.bounds, np.float64).mean(0)
+
+
 def _so3_exp(w: np.ndarray) -> np.ndarray:
     angle = float(np.linalg.norm(w))
     if angle < 1e-12:
@@ -259,7 +264,7 @@ class RegionRefiner:
         t = np.asarray(t, np.float64).reshape(3)
         starts = [(R, t * f) for f in self.config.depth_hypotheses]
         if self.config.roll_hypotheses:
-            c = R @ np.asarray(model.mesh.bounds, np.float64).mean(0) + t  # the object's centre, camera frame
+            c = R @ _box_centre(model) + t  # the object's centre, camera frame
             axis = c / max(float(np.linalg.norm(c)), 1e-9)
             for deg in self.config.roll_hypotheses:
                 Q = _so3_exp(axis * np.radians(deg))
@@ -362,9 +367,8 @@ class RegionRefiner:
             if x1 <= x0 or y1 <= y0:
                 return None, np.zeros((max(y1 - y0, 0), max(x1 - x0, 0)), bool), (x0, y0)
         # image pixel -> viewport coordinates, from the pixel's absolute position (the same for any window)
-        mx = np.broadcast_to(((np.arange(x0, x1) - A[0, 2]) * a).astype(np.float32), (y1 - y0, x1 - x0))
-        my = np.broadcast_to(((np.arange(y0, y1) - A[1, 2]) * a).astype(np.float32)[:, None], (y1 - y0, x1 - x0))
-        mx, my = np.ascontiguousarray(mx), np.ascontiguousarray(my)
+        mx, my = np.meshgrid(((np.arange(x0, x1) - A[0, 2]) * a).astype(np.float32),
+                             ((np.arange(y0, y1) - A[1, 2]) * a).astype(np.float32))
         sil = cv2.remap(mask * 255, mx, my, cv2.INTER_LINEAR) > 127
         k3 = np.ones((3, 3), np.uint8)
         fg = cv2.erode(sil.astype(np.uint8), k3, iterations=self.config.fg_margin) > 0  # 0 iterations: a copy
@@ -398,7 +402,7 @@ class RegionRefiner:
         R = np.asarray(R, np.float64).copy()
         t = np.asarray(t, np.float64).reshape(3).copy()
         H, W = image.shape[:2]
-        centre_m = np.asarray(model.mesh.bounds, np.float64).mean(0)
+        centre_m = _box_centre(model)
         L = int(cfg.line_steps)
         s_grid = np.arange(-L, L + 1, dtype=np.float64)  # sample positions, in steps, outward positive
         d_grid = np.arange(-(L - 1), L - 1 + 0.25, 0.5)  # candidate contour positions

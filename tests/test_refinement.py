@@ -225,12 +225,70 @@ def test_histogram_margins_leave_the_bands_beside_the_edge_out(fg_margin, bg_mar
         RegionRefineConfig(fg_margin=-1)
 
 
-def test_posterior_window_holds_the_whole_images_values(scene_renderer):
-    """The posterior on a window around the silhouette (``reach`` px past its box besides the ring) equals the
-    whole image's there, hidden pixels and all; and refinement on windows gives the whole image's poses, bit for bit."""
+def test_local_histograms_separate_what_the_whole_silhouettes_cannot():
+    """An object red on its left half and blue on its right, on a background blue beside the left half and red
+    beside the right: one histogram pair sees both colours on both sides (posterior 0.5 everywhere); one pair
+    per angular sector tells object from background on each side."""
+    H = W = 120
+    sil = np.zeros((60, 60), np.uint8)
+    sil[10:50, 10:50] = 1
+    A = np.array([[1.0, 0.0, 30.0], [0.0, 1.0, 30.0]])  # viewport px -> image px: the square is image [40, 80)
+    img = np.zeros((H, W, 3), np.uint8)
+    img[:, :60] = (0, 0, 200)
+    img[:, 60:] = (200, 0, 0)
+    img[40:80, 40:60] = (200, 0, 0)
+    img[40:80, 60:80] = (0, 0, 200)
+    whole, _, _ = RegionRefiner(config=RegionRefineConfig(fg_margin=0, bg_margin=0))._posterior(img, sil, A, 40.0)
+    np.testing.assert_allclose(whole[[60, 60, 60, 60], [45, 75, 30, 90]], 0.5, atol=0.02)
+    for prior in (0.0, 100.0):
+        ref = RegionRefiner(config=RegionRefineConfig(fg_margin=0, bg_margin=0, local_regions=4, local_prior=prior))
+        local, _, _ = ref._posterior(img, sil, A, 40.0)
+        # inside left / right half, outside left / right (the sectors of +-45 degrees about the x axis); the
+        # prior (0.5 for both colours) pulls toward 0.5 by its weight against the sector's ~400 / ~280 px
+        lo, hi = (0.01, 0.99) if prior == 0 else (0.2, 0.8)
+        assert local[60, 45] > hi and local[60, 75] > hi, (local[60, 45], local[60, 75])
+        assert local[60, 30] < lo and local[60, 90] < lo, (local[60, 30], local[60, 90])
+    # many sectors without a prior: sectors with no pixel of a side fall back on the whole pair (no 0 / 0)
+    many, _, _ = RegionRefiner(config=RegionRefineConfig(local_regions=720, local_prior=0.0))._posterior(img, sil, A, 40.0)
+    assert np.isfinite(many).all() and many.min() >= 0.0 and many.max() <= 1.0
+    same, _, _ = RegionRefiner(config=RegionRefineConfig(fg_margin=0, bg_margin=0, local_regions=1))._posterior(img, sil, A, 40.0)
+    np.testing.assert_array_equal(same, whole)  # one sector: the whole silhouette's pair
+    for bad in ({"local_regions": -1}, {"local_regions": 2.5}, {"local_prior": -1.0}):
+        with pytest.raises(ValueError, match=next(iter(bad))):
+            RegionRefineConfig(**bad)
+
+
+def test_local_histograms_recover_a_pose_where_the_background_has_the_objects_colours(scene_renderer):
+    """The background beside the object's left half is made of the object's own pixels (drawn at random), the
+    rest stays dark: one histogram pair sees the object's colours as background and the pose runs off;
+    per-sector pairs judge the right side by its own surroundings and bring the perturbed pose back."""
     model = procedural_objects(obj_ids=[3])[0]
     image, R, t = _scene(scene_renderer, model)
-    ref = RegionRefiner()
+    inside = scene_renderer.render([(model, R, t)]).depth > 0
+    left = np.zeros_like(inside)
+    left[:, : int(np.median(np.nonzero(inside)[1]))] = True
+    where = left & ~inside
+    image = image.copy()
+    image[where] = image[inside][np.random.default_rng(0).integers(0, int(inside.sum()), int(where.sum()))]
+    start = _perturbed(R, t)
+    outs = {}
+    for S in (0, 8):
+        ref = RegionRefiner(config=RegionRefineConfig(local_regions=S))
+        outs[S] = ref.refine(image, model, *start, LINEMOD_K)
+        ref.close()
+    assert np.linalg.norm(outs[0].t - t) > 50.0  # one pair: lost (a control, so the scene is a hard one)
+    assert outs[8].ok and np.linalg.norm(outs[8].t - t) < 10.0 and rotation_error_deg(outs[8].R, R) < 3.0
+    assert outs[8].evidence > outs[0].evidence + 0.2
+
+
+@pytest.mark.parametrize("local_regions", [0, 8])
+def test_posterior_window_holds_the_whole_images_values(scene_renderer, local_regions):
+    """The posterior on a window around the silhouette (``reach`` px past its box besides the ring) equals the
+    whole image's there, hidden pixels and all, with one histogram pair or one per sector; and refinement on
+    windows gives the whole image's poses, bit for bit."""
+    model = procedural_objects(obj_ids=[3])[0]
+    image, R, t = _scene(scene_renderer, model)
+    ref = RegionRefiner(config=RegionRefineConfig(local_regions=local_regions))
     s = ref.config.viewport
     sil = np.zeros((s, s), np.uint8)
     sil[60:130, 50:120] = 1

@@ -67,7 +67,11 @@ class RegionRefineConfig:
     wider basin in depth, the quantity keypoints measure worst. ``roll_hypotheses``: further starts, each the
     pose turned by that many degrees about the line of sight through the object's centre (at the estimated
     depth), competing with the depth hypotheses in the same way: a wider basin for the in-plane rotation,
-    which the tight rotation prior otherwise barely moves.
+    which the tight rotation prior otherwise barely moves. ``local_regions``: more than one, and the colour
+    histograms are counted per angular sector about the silhouette's centroid, each pixel's posterior taken from
+    its sector's pair, so each stretch of the contour is judged against its own surroundings (a dark part of the
+    object before a dark background elsewhere no longer reads as background); ``local_prior`` pseudo-pixels of
+    the whole silhouette's histograms are mixed into each sector's (few pixels: close to the whole pair).
     """
 
     scales: tuple[float, ...] = (0.25, 0.18, 0.12, 0.09, 0.07, 0.06)
@@ -89,6 +93,8 @@ class RegionRefineConfig:
     cover_box: str = "none"  # none | before | after the region steps: a pose too small for its box moves closer (cover_box())
     depth_hypotheses: tuple[float, ...] = (1.0,)  # refine from the translation times each; keep the most evidence
     roll_hypotheses: tuple[float, ...] = ()  # degrees about the line of sight: more starts competing the same way
+    local_regions: int = 0  # > 1: colour histograms per angular sector about the silhouette (0 / 1: one pair)
+    local_prior: float = 100.0  # pseudo-pixels of the whole silhouette's histograms in each sector's
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "depth_hypotheses", tuple(float(v) for v in self.depth_hypotheses))
@@ -117,6 +123,11 @@ class RegionRefineConfig:
         for name in ("slope", "min_step", "prior_rotation", "prior_translation", "ring"):
             if not (getattr(self, name) > 0):
                 raise ValueError(f"region refinement: {name} must be > 0, got {getattr(self, name)}")
+        if isinstance(self.local_regions, bool) or int(self.local_regions) != self.local_regions or self.local_regions < 0:
+            raise ValueError(f"region refinement: local_regions must be a whole number >= 0, got {self.local_regions!r}")
+        object.__setattr__(self, "local_regions", int(self.local_regions))
+        if not (self.local_prior >= 0):
+            raise ValueError(f"region refinement: local_prior must be >= 0 (pseudo-pixels), got {self.local_prior}")
         if not (0 <= self.edge_offset <= 1):
             raise ValueError(f"region refinement: edge_offset must lie in [0, 1] (viewport px), got {self.edge_offset}")
 
@@ -386,8 +397,27 @@ class RegionRefiner:
         hb = np.bincount(code[bg], minlength=n).astype(np.float64)
         if hf.sum() < 10 or hb.sum() < 10:
             return None, sil, (x0, y0)
-        hf = hf / hf.sum() + 1e-6
-        hb = hb / hb.sum() + 1e-6
+        hf = hf / hf.sum()
+        hb = hb / hb.sum()
+        S = self.config.local_regions
+        if S > 1:  # each angular sector about the silhouette's centroid: its own histograms, the whole one's as a prior
+            ys, xs = np.nonzero(sil)
+            cx, cy = xs.mean() + x0, ys.mean() + y0  # absolute image px: the same for any window
+            ang = np.arctan2((np.arange(y0, y1) - cy)[:, None], (np.arange(x0, x1) - cx)[None, :])
+            sec = np.minimum(((ang + np.pi) * (S / (2 * np.pi))).astype(np.int32), S - 1)
+            key = sec * n + code
+            beta = self.config.local_prior
+
+            def mixed(counts, whole):  # (counts + beta * whole) / (N + beta); a sector with neither: the whole pair
+                total = counts.sum(1, keepdims=True)
+                w = np.divide(total, total + beta, out=np.zeros_like(total), where=total + beta > 0)
+                return w * counts / np.maximum(total, 1.0) + (1.0 - w) * whole + 1e-6
+
+            lf = mixed(np.bincount(key[fg], minlength=S * n).reshape(S, n).astype(np.float64), hf)
+            lb = mixed(np.bincount(key[bg], minlength=S * n).reshape(S, n).astype(np.float64), hb)
+            pf = (lf / (lf + lb)).astype(np.float32).ravel()
+            return pf[key], sil, (x0, y0)
+        hf, hb = hf + 1e-6, hb + 1e-6
         pf = (hf / (hf + hb)).astype(np.float32)
         return pf[code], sil, (x0, y0)
 

@@ -272,7 +272,8 @@ def run_evaluation(cfg, out_dir: str | Path, extra_metrics: dict | None = None) 
                        batch_size=cfg_int(cfg, "batch_size"), max_frames=cfg.data.max_frames,
                        n_overlays=cfg_int(cfg, "overlays"), run_info=info, progress=bool(cfg.progress),
                        extra_metrics=extra_metrics, shard=to_int(cfg.get("shard", 0), "shard"),
-                       num_shards=to_int(cfg.get("num_shards", 1), "num_shards"), merge=bool(cfg.get("merge", False)))
+                       num_shards=to_int(cfg.get("num_shards", 1), "num_shards"), merge=bool(cfg.get("merge", False)),
+                       refiner_ceiling=bool(cfg.get("refiner_ceiling", False)))
     if bool(cfg.get("fit_depth_calibration", False)) and "mean" in metrics:
         from kpd6d.evaluation.calibration import fit_depth_calibration, write_depth_calibration
 
@@ -318,6 +319,7 @@ def _eval_cfg(cfg, root: Path, split: str, det, kpd, max_frames="run", **over):
         "depth_calibration": _depth_calibration(cfg.evaluate.get("depth_calibration", 1.0)),
         "refiner": to_plain(cfg.evaluate.get("refiner")),
         "oracle_box": str(cfg.evaluate.get("oracle_box") or DEFAULT_BOX_FIELD),
+        "refiner_ceiling": bool(cfg.evaluate.get("refiner_ceiling", False)),
         "device": None, "overlays": cfg_int(cfg, "evaluate.overlays"), "progress": bool(cfg.progress), **over,
     })
 

@@ -393,19 +393,22 @@ class RegionRefiner:
         q = (image[y0:y1, x0:x1] >> shift).astype(np.int32)
         code = (q[..., 0] * b + q[..., 1]) * b + q[..., 2]
         n = b ** 3
-        hf = np.bincount(code[fg], minlength=n).astype(np.float64)
-        hb = np.bincount(code[bg], minlength=n).astype(np.float64)
-        if hf.sum() < 10 or hb.sum() < 10:
-            return None, sil, (x0, y0)
-        hf = hf / hf.sum()
-        hb = hb / hb.sum()
-        S = self.config.local_regions
+        S = max(1, self.config.local_regions)
+        key = code
         if S > 1:  # each angular sector about the silhouette's centroid: its own histograms, the whole one's as a prior
             ys, xs = np.nonzero(sil)
             cx, cy = xs.mean() + x0, ys.mean() + y0  # absolute image px: the same for any window
             ang = np.arctan2((np.arange(y0, y1) - cy)[:, None], (np.arange(x0, x1) - cx)[None, :])
-            sec = np.minimum(((ang + np.pi) * (S / (2 * np.pi))).astype(np.int32), S - 1)
-            key = sec * n + code
+            key = np.minimum(((ang + np.pi) * (S / (2 * np.pi))).astype(np.int32), S - 1) * n + code
+        # counts per sector (one sector: the whole silhouette's); the whole pair is their sum
+        cf = np.bincount(key[fg], minlength=S * n).reshape(S, n).astype(np.float64)
+        cb = np.bincount(key[bg], minlength=S * n).reshape(S, n).astype(np.float64)
+        hf, hb = cf.sum(0), cb.sum(0)
+        if hf.sum() < 10 or hb.sum() < 10:
+            return None, sil, (x0, y0)
+        hf = hf / hf.sum()
+        hb = hb / hb.sum()
+        if S > 1:
             beta = self.config.local_prior
 
             def mixed(counts, whole):  # (counts + beta * whole) / (N + beta); a sector with neither: the whole pair
@@ -413,8 +416,7 @@ class RegionRefiner:
                 w = np.divide(total, total + beta, out=np.zeros_like(total), where=total + beta > 0)
                 return w * counts / np.maximum(total, 1.0) + (1.0 - w) * whole + 1e-6
 
-            lf = mixed(np.bincount(key[fg], minlength=S * n).reshape(S, n).astype(np.float64), hf)
-            lb = mixed(np.bincount(key[bg], minlength=S * n).reshape(S, n).astype(np.float64), hb)
+            lf, lb = mixed(cf, hf), mixed(cb, hb)
             pf = (lf / (lf + lb)).astype(np.float32).ravel()
             return pf[key], sil, (x0, y0)
         hf, hb = hf + 1e-6, hb + 1e-6

@@ -360,12 +360,15 @@ def evaluate(pipeline, dataset, out_dir: str | os.PathLike, *, oracle: bool = Fa
         bop = score_bop19_file(out_dir / "results.csv", dataset.root, **where, **known)
         bop["decomposition"] = error_decomposition(read_bop_results(out_dir / "results.csv"), dataset.root,
                                                    **where, **known)
-        if refiner_ceiling and getattr(pipeline, "refiner", None) is not None:
-            ceil = score_bop19(refined_from_gt(pipeline.refiner, frames, eval_instances), dataset.root, **where, **known)
-            bop["decomposition"]["gt_refined"] = {"ar_mssd": ceil["ar_mssd"], "ar_mspd": ceil["ar_mspd"]}
     except Exception as exc:  # scoring is a summary; never lose the metrics above over it
         bop = {"error": f"{type(exc).__name__}: {exc}"}
-    metrics["bop19"] = {k: bop[k] for k in ("ar_mssd", "ar_mspd", "vsd", "n_targets", "decomposition", "error")
+    if refiner_ceiling and getattr(pipeline, "refiner", None) is not None and "decomposition" in bop:
+        try:  # its own failure loses only its row
+            ceil = score_bop19(refined_from_gt(pipeline.refiner, frames, eval_instances), dataset.root, **where, **known)
+            bop["decomposition"]["gt_refined"] = {"ar_mssd": ceil["ar_mssd"], "ar_mspd": ceil["ar_mspd"]}
+        except Exception as exc:
+            bop["decomposition_error"] = f"gt_refined: {type(exc).__name__}: {exc}"
+    metrics["bop19"] = {k: bop[k] for k in ("ar_mssd", "ar_mspd", "vsd", "n_targets", "decomposition", "decomposition_error", "error")
                         if k in bop}
     for oid, o in (bop.get("per_object") or {}).items():
         if oid in metrics["per_object"]:

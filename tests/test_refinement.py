@@ -279,23 +279,6 @@ def test_local_histograms_recover_a_pose_where_the_background_has_the_objects_co
     assert np.linalg.norm(outs[0].t - t) > 50.0  # one pair: lost (a control, so the scene is a hard one)
     assert outs[8].ok and np.linalg.norm(outs[8].t - t) < 10.0 and rotation_error_deg(outs[8].R, R) < 3.0
     assert outs[8].evidence > outs[0].evidence + 0.2
-    # local_from: the steps before it count one pair (the same poses, step for step, as local_regions=0), the
-    # steps from it on the sectors (they leave that path); local_from past the last step: the one-pair run
-    for k in (2, 4):
-        ref = RegionRefiner(config=RegionRefineConfig(local_regions=8, local_from=k))
-        late = ref.refine(image, model, *start, LINEMOD_K)
-        ref.close()
-        for (Ra, ta), (Rb, tb) in zip(late.history[:k], outs[0].history[:k]):
-            np.testing.assert_array_equal(Ra, Rb)
-            np.testing.assert_array_equal(ta, tb)
-        assert np.abs(late.history[k][1] - outs[0].history[k][1]).max() > 0.1
-    ref = RegionRefiner(config=RegionRefineConfig(local_regions=8, local_from=6))
-    never = ref.refine(image, model, *start, LINEMOD_K)
-    ref.close()
-    np.testing.assert_array_equal(never.t, outs[0].t)
-    for bad in (-1, 1.5, True):
-        with pytest.raises(ValueError, match="local_from"):
-            RegionRefineConfig(local_regions=8, local_from=bad)
 
 
 @pytest.mark.parametrize("local_regions", [0, 8])

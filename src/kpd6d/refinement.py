@@ -71,9 +71,7 @@ class RegionRefineConfig:
     histograms are counted per angular sector about the silhouette's centroid, each pixel's posterior taken from
     its sector's pair, so each stretch of the contour is judged against its own surroundings (a dark part of the
     object before a dark background elsewhere no longer reads as background); ``local_prior`` pseudo-pixels of
-    the whole silhouette's histograms are mixed into each sector's (few pixels: close to the whole pair);
-    ``local_from``: the steps before this index use the one pair (the coarse steps, far from the contour,
-    where sectors taken at a wrong pose would confirm it), the steps from it on the sectors.
+    the whole silhouette's histograms are mixed into each sector's (few pixels: close to the whole pair).
     """
 
     scales: tuple[float, ...] = (0.25, 0.18, 0.12, 0.09, 0.07, 0.06)
@@ -97,7 +95,6 @@ class RegionRefineConfig:
     roll_hypotheses: tuple[float, ...] = ()  # degrees about the line of sight: more starts competing the same way
     local_regions: int = 0  # > 1: colour histograms per angular sector about the silhouette (0 / 1: one pair)
     local_prior: float = 100.0  # pseudo-pixels of the whole silhouette's histograms in each sector's
-    local_from: int = 0  # the first step (index into scales) that counts sectors; the steps before it: one pair
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "depth_hypotheses", tuple(float(v) for v in self.depth_hypotheses))
@@ -129,9 +126,6 @@ class RegionRefineConfig:
         if isinstance(self.local_regions, bool) or int(self.local_regions) != self.local_regions or self.local_regions < 0:
             raise ValueError(f"region refinement: local_regions must be a whole number >= 0, got {self.local_regions!r}")
         object.__setattr__(self, "local_regions", int(self.local_regions))
-        if isinstance(self.local_from, bool) or int(self.local_from) != self.local_from or self.local_from < 0:
-            raise ValueError(f"region refinement: local_from must be a step index >= 0, got {self.local_from!r}")
-        object.__setattr__(self, "local_from", int(self.local_from))
         if not (self.local_prior >= 0):
             raise ValueError(f"region refinement: local_prior must be >= 0 (pseudo-pixels), got {self.local_prior}")
         if not (0 <= self.edge_offset <= 1):
@@ -361,13 +355,12 @@ class RegionRefiner:
             occ = np.where(res.masks_visib[0], 0.0, res.depth).astype(np.float32)  # the front-most other object
         return X, nv, self.config.edge_offset / a, (mask, A, a), occ
 
-    def _posterior(self, image, mask, A, diameter_px, hidden=None, reach=None, sectors=None):
+    def _posterior(self, image, mask, A, diameter_px, hidden=None, reach=None):
         """Per-pixel foreground posterior (float32), from colour histograms of the silhouette (eroded; less
         the ``hidden`` viewport pixels) and a ring around it, the silhouette in image pixels (bool), and
         their window's origin (x0, y0) in the image. ``reach``: px beyond the silhouette's box the window
         must cover besides the ring (None: the whole image). The window holds every pixel the histograms
-        count, so the values are the whole image's there. ``sectors``: the angular sectors counted (None:
-        ``local_regions``)."""
+        count, so the values are the whole image's there."""
         import cv2
 
         H, W = image.shape[:2]
@@ -400,7 +393,7 @@ class RegionRefiner:
         q = (image[y0:y1, x0:x1] >> shift).astype(np.int32)
         code = (q[..., 0] * b + q[..., 1]) * b + q[..., 2]
         n = b ** 3
-        S = max(1, self.config.local_regions if sectors is None else sectors)
+        S = max(1, self.config.local_regions)
         key = code
         if S > 1:  # each angular sector about the silhouette's centroid: its own histograms, the whole one's as a prior
             ys, xs = np.nonzero(sil)
@@ -447,7 +440,7 @@ class RegionRefiner:
         d_grid = np.arange(-(L - 1), L - 1 + 0.25, 0.5)  # candidate contour positions
         prior = np.diag([1.0 / cfg.prior_rotation ** 2] * 3 + [1.0 / cfg.prior_translation ** 2] * 3)
         history, lines, ok, evidence = [], 0, False, 0.0
-        for index, scale in enumerate(cfg.scales):
+        for scale in cfg.scales:
             c = R @ centre_m + t
             if c[2] <= 1e-3:
                 break
@@ -463,8 +456,7 @@ class RegionRefiner:
             reach = None if self._full_frame else L * step + abs(edge) + kk // 2 + 2
             # inside the silhouette, where another object is the front-most: not this object's colours
             pf, sil, (ox, oy) = self._posterior(image, mask, A, diameter_px,
-                                                None if occ is None else (occ > 0) & (mask > 0), reach,
-                                                cfg.local_regions if index >= cfg.local_from else 1)
+                                                None if occ is None else (occ > 0) & (mask > 0), reach)
             if pf is None:
                 break
             if kk > 1:
